@@ -1,0 +1,156 @@
+"""Scenario definitions for the berthing simulator (SPEC sections 2 and 8).
+
+World frame of the simulator = the reference local-level frame (NED) at ``origin_llh``.
+The sea surface is the plane down = 0. The quay face is the vertical plane north = 0 between
+``quay_east_range``; land (quay apron, buildings, cranes) lies at north > 0, water at north < 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import datetime
+
+import numpy as np
+
+from estimator.frames import camera_to_body, gpst_from_datetime
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    origin_llh_deg: tuple[float, float, float]  # lat, lon (deg), ellipsoidal height of sea surface
+    start: datetime  # GPS time of the first sample (inside the shipped nav file's validity)
+    duration_s: float
+    scene_kind: str  # "marina" or "container-terminal": what the renderer builds
+    # Ship path: keyframes (t s, north m, east m, yaw deg) of the reference point; the motion
+    # model interpolates them smoothly and adds wave motion.
+    path_keyframes: tuple[tuple[float, float, float, float], ...]
+    reference_point_down_m: float  # mean height of the body origin (IMU) above the sea (negative)
+    wave_roll_deg: float
+    wave_pitch_deg: float
+    wave_heave_m: float
+    wave_period_s: float
+    # Sensors in the body frame (forward, right, down) relative to the body origin (IMU)
+    camera_lever_arm: tuple[float, float, float]
+    camera_pan_deg: float
+    camera_tilt_deg: float  # downward positive
+    camera_size: tuple[int, int]  # width, height of the bundled video
+    camera_hfov_deg: float
+    camera_distortion: tuple[float, float, float, float, float]
+    antenna_centre: tuple[float, float, float]
+    antenna_side_m: float
+    hull_length_m: float
+    hull_beam_m: float
+    quay_east_range: tuple[float, float]
+    quay_height_m: float  # quay top above the sea surface
+    elevation_mask_deg: float
+    # Azimuth/elevation obstruction: (azimuth from, azimuth to, elevation below which masked),
+    # degrees, switched on when the antenna is within ``mask_range_m`` of the quay face.
+    obstructions: tuple[tuple[float, float, float], ...] = ()
+    mask_range_m: float = 0.0
+    constellations: tuple[str, ...] = ("G", "E", "J")
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def start_gpst(self) -> float:
+        return gpst_from_datetime(self.start)
+
+    @property
+    def C_camera_to_body(self) -> np.ndarray:
+        return camera_to_body(np.radians(self.camera_pan_deg), np.radians(self.camera_tilt_deg))
+
+    def antennas_body(self) -> np.ndarray:
+        """Four antennas on the corners of a square (thesis fig. 10), numbered 1..4 as
+        front-left, front-right, rear-right, rear-left."""
+        h = self.antenna_side_m / 2.0
+        c = np.array(self.antenna_centre)
+        corners = np.array([[h, -h, 0.0], [h, h, 0.0], [-h, h, 0.0], [-h, -h, 0.0]])
+        return corners + c
+
+    def hull_outline(self) -> np.ndarray:
+        """Hull polygon (forward, right) in the body frame, bow pointed, body origin amidships."""
+        L, B = self.hull_length_m, self.hull_beam_m
+        x_bow, x_stern = 0.5 * L, -0.5 * L
+        x_shoulder = 0.5 * L - 0.25 * L
+        return np.array([
+            [x_bow, 0.0], [x_shoulder, 0.5 * B], [x_stern, 0.5 * B],
+            [x_stern, -0.5 * B], [x_shoulder, -0.5 * B],
+        ])
+
+
+SMALL_BOAT = Scenario(
+    name="small-boat",
+    description="Thesis sea trial: 7 m boat, bow camera ~1 m above water looking forward, "
+    "~1 m/s approach with ~10 deg/s turns over ~90 s, pier ~10 m ahead at the end, open sky.",
+    origin_llh_deg=(34.7205, 135.3330, 37.0),  # Nishinomiya marina, Hyogo
+    start=datetime(2024, 6, 24, 8, 30, 0),
+    duration_s=90.0,
+    scene_kind="marina",
+    # Approach from the south-west, an S-turn, slow down, swing to come alongside.
+    path_keyframes=(
+        (0.0, -75.0, -45.0, 20.0),
+        (20.0, -57.0, -37.0, 40.0),
+        (30.0, -48.0, -30.0, -15.0),
+        (45.0, -36.0, -28.0, 20.0),
+        (70.0, -18.0, -16.0, 30.0),
+        (90.0, -12.0, -10.0, 35.0),
+    ),
+    reference_point_down_m=-0.6,
+    wave_roll_deg=2.0,
+    wave_pitch_deg=1.0,
+    wave_heave_m=0.05,
+    wave_period_s=3.5,
+    camera_lever_arm=(3.0, 0.0, -0.4),  # bow, ~1 m above the sea
+    camera_pan_deg=0.0,
+    camera_tilt_deg=3.0,
+    camera_size=(960, 600),
+    camera_hfov_deg=70.3,
+    camera_distortion=(-0.12, 0.05, 0.0005, -0.0003, 0.0),
+    antenna_centre=(1.0, 0.0, -1.2),
+    antenna_side_m=0.10,
+    hull_length_m=7.0,
+    hull_beam_m=2.5,
+    quay_east_range=(-60.0, 60.0),
+    quay_height_m=1.5,
+    elevation_mask_deg=10.0,
+)
+
+LARGE_SHIP = Scenario(
+    name="large-ship",
+    description="Large ship coming alongside: bridge camera ~20 m above the sea looking "
+    "obliquely down at a container quay ~100 m away, ~0.1 m/s and ~1 deg/s, gantry cranes "
+    "masking satellites near the berth.",
+    origin_llh_deg=(34.6690, 135.2150, 37.0),  # Kobe container terminal area
+    start=datetime(2024, 6, 24, 8, 40, 0),
+    duration_s=120.0,
+    scene_kind="container-terminal",
+    # Heading east along the quay (quay to port), drifting north towards it.
+    path_keyframes=(
+        (0.0, -118.0, -20.0, 86.0),
+        (60.0, -112.0, -14.0, 90.0),
+        (120.0, -106.0, -10.0, 92.0),
+    ),
+    reference_point_down_m=-12.0,
+    wave_roll_deg=0.3,
+    wave_pitch_deg=0.1,
+    wave_heave_m=0.05,
+    wave_period_s=9.0,
+    camera_lever_arm=(-60.0, -10.0, -8.0),  # bridge wing, ~20 m above the sea
+    camera_pan_deg=-75.0,  # looking to port, towards the quay
+    camera_tilt_deg=10.0,
+    camera_size=(960, 600),
+    camera_hfov_deg=70.3,
+    camera_distortion=(-0.10, 0.03, 0.0, 0.0, 0.0),
+    antenna_centre=(-60.0, 0.0, -14.0),
+    antenna_side_m=0.10,
+    hull_length_m=200.0,
+    hull_beam_m=32.0,
+    quay_east_range=(-250.0, 250.0),
+    quay_height_m=3.0,
+    elevation_mask_deg=10.0,
+    obstructions=((300.0, 360.0, 40.0), (0.0, 60.0, 40.0)),
+    mask_range_m=150.0,
+)
+
+SCENARIOS: dict[str, Scenario] = {s.name: s for s in (SMALL_BOAT, LARGE_SHIP)}
