@@ -23,8 +23,9 @@ class Scenario:
     start: datetime  # GPS time of the first sample (inside the shipped nav file's validity)
     duration_s: float
     scene_kind: str  # "marina" or "container-terminal": what the renderer builds
-    # Ship path: keyframes (t s, north m, east m, yaw deg) of the reference point; the motion
-    # model interpolates them smoothly and adds wave motion.
+    # Ship path: keyframes (t s, north m, east m, yaw deg) of the ship's centre of motion (on
+    # the waterline below the IMU). ``motion.ShipMotion`` passes exactly through them with a C2
+    # heading and the smoothest surge/sway of least sideways speed, and adds wave motion.
     path_keyframes: tuple[tuple[float, float, float, float], ...]
     reference_point_down_m: float  # mean height of the body origin (IMU) above the sea (negative)
     wave_roll_deg: float
@@ -87,14 +88,19 @@ SMALL_BOAT = Scenario(
     start=datetime(2024, 6, 24, 8, 30, 0),
     duration_s=90.0,
     scene_kind="marina",
-    # Approach from the south-west, an S-turn, slow down, swing to come alongside.
+    # Approach from the south-west at ~1.1 m/s, an S-turn (starboard ~8 deg/s, port ~10 deg/s),
+    # slow down, swing to starboard and stop with the pier ~12 m ahead of the bow camera. The
+    # keyframes come from a surge/heading design with a weak current (0.05 m/s to the NE), so
+    # the motion model needs only a few cm/s of sway to pass through them.
     path_keyframes=(
-        (0.0, -75.0, -45.0, 20.0),
-        (20.0, -57.0, -37.0, 40.0),
-        (30.0, -48.0, -30.0, -15.0),
-        (45.0, -36.0, -28.0, 20.0),
-        (70.0, -18.0, -16.0, 30.0),
-        (90.0, -12.0, -10.0, 35.0),
+        (0.0, -73.2, -46.6, 25.0),
+        (10.0, -62.5, -41.3, 25.0),
+        (20.0, -54.6, -32.9, 68.0),
+        (33.0, -43.6, -24.9, 0.0),
+        (47.0, -31.3, -21.0, 32.0),
+        (62.0, -21.2, -14.8, 28.0),
+        (78.0, -16.0, -11.1, 40.0),
+        (90.0, -14.8, -9.9, 40.0),
     ),
     reference_point_down_m=-0.6,
     wave_roll_deg=2.0,
@@ -125,11 +131,14 @@ LARGE_SHIP = Scenario(
     start=datetime(2024, 6, 24, 8, 40, 0),
     duration_s=120.0,
     scene_kind="container-terminal",
-    # Heading east along the quay (quay to port), drifting north towards it.
+    # Heading east along the quay (quay to port), slowing from ~0.12 m/s while tugs push her
+    # sideways north towards it (sway up to ~0.08 m/s) and turn her ~10 deg (<= 0.3 deg/s).
     path_keyframes=(
-        (0.0, -118.0, -20.0, 86.0),
-        (60.0, -112.0, -14.0, 90.0),
-        (120.0, -106.0, -10.0, 92.0),
+        (0.0, -120.0, -32.0, 84.0),
+        (30.0, -118.3, -28.6, 88.0),
+        (60.0, -116.0, -25.6, 94.0),
+        (90.0, -114.1, -23.1, 92.0),
+        (120.0, -112.3, -21.8, 91.0),
     ),
     reference_point_down_m=-12.0,
     wave_roll_deg=0.3,
