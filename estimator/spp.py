@@ -1,0 +1,281 @@
+"""Standalone (single-point) positioning from L1/E1/B1I pseudoranges (the CPP block's ``r``).
+
+Iterated weighted least squares on position, one receiver clock per constellation (the first
+present of G, E, J, C, R is the reference; the others are its inter-system biases), with the
+satellite clock, Sagnac, Saastamoinen troposphere and Klobuchar ionosphere corrections and
+an elevation-dependent weighting. Outliers are removed one at a time by the normalised residual
+(w-) test while redundancy remains.
+
+Several receivers driven by one clock (the GNSS compass) can be solved together by passing a
+list of their epochs: one position (their mean antenna position) and one set of clocks; the
+observation keys are then ``"<receiver index>:<sat>"``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .ephemeris import (
+    SatelliteState,
+    carrier_frequency,
+    is_beidou_geo,
+    klobuchar_delay,
+    rotate_earth,
+    satellite_state,
+    select_ephemeris,
+    troposphere_delay,
+)
+from .frames import (
+    FREQ_L1,
+    OMEGA_EARTH,
+    SPEED_OF_LIGHT,
+    C_ecef_to_level,
+    ecef_to_geodetic,
+)
+from .records import GnssEpoch, NavigationData
+
+SYSTEM_ORDER = "GEJCR"  # reference-clock preference
+
+# 1-sigma signal-in-space range error (orbit + clock + group delay) per system (m); GLONASS
+# also carries receiver inter-frequency biases, BeiDou GEO orbits are the weakest.
+_SIS_SIGMA = {"G": 1.0, "J": 1.0, "E": 0.8, "C": 1.5, "R": 2.0}
+_SIS_SIGMA_BEIDOU_GEO = 2.5
+_CODE_SIGMA = 0.3  # m, zenith code noise + multipath; grows as 1/sin(elevation)
+# Klobuchar leaves ~50 % of the delay, but that error is mostly common to all satellites
+# (absorbed by clock and height); 20 % is the part that shows in the residuals.
+_IONO_MODEL_FRACTION = 0.2
+_IONO_SIGMA_NO_MODEL = 5.0  # m at zenith when no Klobuchar coefficients are broadcast
+_TROPO_SIGMA = 0.1  # m at zenith for the standard-atmosphere model
+
+NORMALISED_RESIDUAL_LIMIT = 4.0
+_MAX_ITERATIONS = 20
+_CONVERGED_M = 1e-4
+
+
+@dataclass
+class StandalonePosition:
+    time: float  # receiver time tag (gpst s) of the epoch
+    position: np.ndarray  # ECEF m
+    llh: np.ndarray  # lat, lon (rad), h (m)
+    clock_bias_m: float  # receiver clock of the reference system times c (m)
+    system_biases_m: dict[str, float]  # per used system, relative to the reference (which is 0)
+    satellites: list[str]  # observation keys used
+    residuals_m: dict[str, float]  # post-fit residuals of the used observations
+    pdop: float
+    rejected: list[str] = field(default_factory=list)  # keys removed by the outlier test
+    reference_system: str = "G"
+    iterations: int = 0
+
+
+@dataclass
+class _Obs:
+    key: str
+    sat: str
+    system: str
+    pseudorange: float
+    state: SatelliteState  # at the true transmit time
+    iono_scale: float  # (f_L1 / f)^2
+    sis_sigma: float
+
+
+def _prepare(epochs: Sequence[GnssEpoch], nav: NavigationData) -> list[_Obs]:
+    multi = len(epochs) > 1
+    out = []
+    for index, ep in enumerate(epochs):
+        for sat, ob in ep.satellites.items():
+            p = ob.pseudorange
+            if not math.isfinite(p) or p <= 0.0 or sat[0] not in SYSTEM_ORDER:
+                continue
+            # The pseudorange itself gives the satellite-time transmit instant, including the
+            # receiver clock offset, so no receiver-clock iteration is needed.
+            flight = p / SPEED_OF_LIGHT  # kept apart from the large gpst for precision
+            eph = select_ephemeris(nav, sat, ep.time - flight)
+            if eph is None:
+                continue
+            try:
+                freq = carrier_frequency(sat, nav)
+            except ValueError:
+                continue
+            st = satellite_state(eph, ep.time, -flight)
+            dts = st.clock_bias
+            # Shift to true time t = t_sv - dts; |dts| < 1 ms so the linear step is exact to um.
+            state = SatelliteState(
+                st.position - st.velocity * dts, st.velocity,
+                st.clock_bias - st.clock_drift * dts, st.clock_drift,
+            )
+            sis = _SIS_SIGMA_BEIDOU_GEO if is_beidou_geo(sat) else _SIS_SIGMA[sat[0]]
+            out.append(_Obs(
+                key=f"{index}:{sat}" if multi else sat, sat=sat, system=sat[0],
+                pseudorange=p, state=state, iono_scale=(FREQ_L1 / freq) ** 2, sis_sigma=sis,
+            ))
+    return out
+
+
+@dataclass
+class _Linearised:
+    obs: list[_Obs]
+    systems: list[str]
+    H: np.ndarray
+    prefit: np.ndarray  # measured - modelled (m), receiver clocks not yet removed
+    sigma: np.ndarray
+
+
+def _linearise(
+    obs: list[_Obs], pos: np.ndarray, nav: NavigationData, mask: float, t_tag: float
+) -> _Linearised:
+    near_surface = False
+    llh = None
+    C_el = None
+    if np.linalg.norm(pos) > 1e6:
+        llh = ecef_to_geodetic(pos)
+        near_surface = abs(llh[2]) < 1e5
+        C_el = C_ecef_to_level(llh[0], llh[1])
+    rows, used = [], []
+    for ob in obs:
+        r_sat = ob.state.position
+        rng = float(np.linalg.norm(r_sat - pos))
+        for _ in range(2):  # Earth rotation during the flight (Sagnac)
+            rotated = rotate_earth(r_sat, OMEGA_EARTH * rng / SPEED_OF_LIGHT)
+            rng = float(np.linalg.norm(rotated - pos))
+        los = (rotated - pos) / rng
+        model = rng - SPEED_OF_LIGHT * ob.state.clock_bias
+        if near_surface:
+            ned = C_el @ los
+            el = math.asin(max(-1.0, min(1.0, -ned[2])))
+            if el < mask:
+                continue
+            az = math.atan2(ned[1], ned[0])
+            tropo = troposphere_delay(el, llh[2])
+            sin_el = max(math.sin(el), 0.05)
+            if nav.iono_alpha is not None and nav.iono_beta is not None:
+                iono = ob.iono_scale * klobuchar_delay(
+                    nav.iono_alpha, nav.iono_beta, t_tag, llh[0], llh[1], el, az)
+                iono_sigma = _IONO_MODEL_FRACTION * iono
+            else:
+                iono = 0.0
+                iono_sigma = ob.iono_scale * _IONO_SIGMA_NO_MODEL / sin_el
+            model += tropo + iono
+            var = (
+                _CODE_SIGMA**2 * (1.0 + 1.0 / sin_el**2) + ob.sis_sigma**2 + iono_sigma**2
+                + (_TROPO_SIGMA / (sin_el + 0.1)) ** 2
+            )
+        else:
+            # Far from the surface (first iterations from the Earth centre): no atmosphere,
+            # no mask, equal weights.
+            var = 1.0
+        rows.append((ob, los, model, var))
+        used.append(ob)
+    systems = [s for s in SYSTEM_ORDER if any(o.system == s for o in used)]
+    # A system seen by a single satellite only determines its own clock: leave it out.
+    sats_per_system = {s: {o.sat for o in used if o.system == s} for s in systems}
+    systems = [s for s in systems if len(sats_per_system[s]) >= 2]
+    rows = [r for r in rows if r[0].system in systems]
+    n, m = len(rows), 3 + len(systems)
+    H = np.zeros((n, m))
+    prefit = np.zeros(n)
+    sigma = np.zeros(n)
+    for i, (ob, los, model, var) in enumerate(rows):
+        H[i, :3] = -los
+        H[i, 3 + systems.index(ob.system)] = 1.0
+        prefit[i] = ob.pseudorange - model
+        sigma[i] = math.sqrt(var)
+    return _Linearised([r[0] for r in rows], systems, H, prefit, sigma)
+
+
+def _solve(lin: _Linearised, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted LS correction for the misclosures ``y`` and its cofactor matrix."""
+    A = lin.H / lin.sigma[:, None]
+    b = y / lin.sigma
+    N = A.T @ A
+    Q = np.linalg.inv(N)
+    return Q @ (A.T @ b), Q
+
+
+def _distinct_sats(obs: list[_Obs]) -> int:
+    return len({o.sat for o in obs})
+
+
+def standalone_position(
+    epoch: GnssEpoch | Sequence[GnssEpoch],
+    nav: NavigationData,
+    *,
+    elevation_mask_deg: float = 10.0,
+    initial_ecef: np.ndarray | None = None,
+) -> StandalonePosition | None:
+    """Standalone position of one epoch (or of several receivers sharing one clock).
+
+    None when fewer than 3 + (number of systems) satellites are usable or the iteration does
+    not converge.
+    """
+    epochs = [epoch] if isinstance(epoch, GnssEpoch) else list(epoch)
+    if not epochs:
+        return None
+    t_tag = epochs[0].time
+    all_obs = _prepare(epochs, nav)
+    mask = math.radians(elevation_mask_deg)
+    pos = np.zeros(3) if initial_ecef is None else np.asarray(initial_ecef, dtype=float).copy()
+    clocks: dict[str, float] = {}
+    rejected: list[str] = []
+    iterations = 0
+
+    while True:
+        active = [o for o in all_obs if o.key not in rejected]
+        converged = False
+        for _ in range(_MAX_ITERATIONS):
+            iterations += 1
+            lin = _linearise(active, pos, nav, mask, t_tag)
+            if not lin.systems or _distinct_sats(lin.obs) < 3 + len(lin.systems):
+                return None
+            # A system joining later (e.g. after the mask) starts from the reference clock.
+            ref_clock = clocks.get(lin.systems[0], 0.0)
+            for s in lin.systems:
+                clocks.setdefault(s, ref_clock)
+            y = lin.prefit - np.array([clocks[o.system] for o in lin.obs])
+            try:
+                dx, Q = _solve(lin, y)
+            except np.linalg.LinAlgError:  # degenerate geometry
+                return None
+            pos = pos + dx[:3]
+            for j, s in enumerate(lin.systems):
+                clocks[s] += dx[3 + j]
+            if np.linalg.norm(dx) < _CONVERGED_M:
+                converged = True
+                break
+        if not converged:
+            return None
+        v = y - lin.H @ dx  # post-fit residuals (the last step was below 0.1 mm)
+        dof = len(v) - lin.H.shape[1]
+        if dof >= 2:
+            # Normalised residuals w_i = v_i / sqrt(Qvv_ii) with Qvv = Sigma - H Q H^T
+            qvv = np.diag(lin.sigma**2) - lin.H @ Q @ lin.H.T
+            d = np.sqrt(np.maximum(np.diag(qvv), 1e-9))
+            w = np.abs(v) / d
+            worst = int(np.argmax(w))
+            if w[worst] > NORMALISED_RESIDUAL_LIMIT:
+                # Residuals perfectly correlated with the worst one (e.g. the two satellites of
+                # a system seen by two only) cannot be told apart: reject them together.
+                corr = np.abs(qvv[worst]) / (d[worst] * d)
+                twins = np.flatnonzero((corr > 0.999) & (w > 0.999 * w[worst]))
+                rejected.extend(lin.obs[i].key for i in twins)
+                continue
+        break
+
+    ref = lin.systems[0]
+    pdop = float(math.sqrt(np.trace(np.linalg.inv(lin.H.T @ lin.H)[:3, :3])))
+    return StandalonePosition(
+        time=t_tag,
+        position=pos,
+        llh=ecef_to_geodetic(pos),
+        clock_bias_m=float(clocks[ref]),
+        system_biases_m={s: float(clocks[s] - clocks[ref]) for s in lin.systems},
+        satellites=[o.key for o in lin.obs],
+        residuals_m={o.key: float(r) for o, r in zip(lin.obs, v, strict=True)},
+        pdop=pdop,
+        rejected=rejected,
+        reference_system=ref,
+        iterations=iterations,
+    )
