@@ -4,7 +4,8 @@ Conventions used everywhere in the project:
 - local level L: north, east, down (NED), origin given as geodetic (lat, lon, h);
 - body B: forward, right, down;  camera C: right, down, forward;  ECEF E;
 - ``C_A_to_B`` (or ``C_A^B`` in the thesis) rotates A coordinates into B: ``x_B = C_A_to_B @ x_A``;
-- Euler angles (roll, pitch, yaw) in radians, ZYX order, ``C_body_to_level = Rz(yaw) Ry(pitch) Rx(roll)``;
+- Euler angles (roll, pitch, yaw) in radians, ZYX order:
+  ``C_body_to_level = Rz(yaw) Ry(pitch) Rx(roll)``;
 - time: GPS time in seconds since the GPS epoch 1980-01-06 00:00:00 (float64), called ``gpst``.
 """
 
@@ -144,7 +145,9 @@ def geodetic_to_ecef(lat: float, lon: float, h: float) -> np.ndarray:
     """ECEF position (m) of geodetic latitude, longitude (rad) and ellipsoidal height (m)."""
     s, c = np.sin(lat), np.cos(lat)
     n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * s * s)
-    return np.array([(n + h) * c * np.cos(lon), (n + h) * c * np.sin(lon), (n * (1 - WGS84_E2) + h) * s])
+    return np.array([
+        (n + h) * c * np.cos(lon), (n + h) * c * np.sin(lon), (n * (1 - WGS84_E2) + h) * s
+    ])
 
 
 def ecef_to_geodetic(xyz: np.ndarray) -> np.ndarray:
