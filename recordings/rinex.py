@@ -535,7 +535,8 @@ def _epoch_line(t: float, flag: int, nsat: int) -> str:
 
 def write_obs(path: str | Path, epochs: list[GnssEpoch], *, marker_name: str, receiver_type: str,
               approx_position_ecef: np.ndarray, interval: float, comments: Sequence[str] = (),
-              glonass_slots: dict[str, int] | None = None) -> None:
+              glonass_slots: dict[str, int] | None = None,
+              run_date: datetime | None = None) -> None:
     """Write L1 observations as a RINEX 3.04 mixed observation file (GPS time).
 
     Each system present gets C1C L1C D1C S1C (BeiDou: C2I L2I D2I S2I, B1I, which is what
@@ -570,7 +571,8 @@ def write_obs(path: str | Path, epochs: list[GnssEpoch], *, marker_name: str, re
 
     pos = np.asarray(approx_position_ecef, dtype=float)
     t0, ticks0 = _split_time(epochs[0].time)
-    now = datetime.now(UTC).strftime("%Y%m%d %H%M%S UTC")
+    # A fixed run_date makes the output byte-identical run to run (deterministic simulator).
+    now = (run_date or datetime.now(UTC)).strftime("%Y%m%d %H%M%S UTC")
     h = [
         _hline(f"{3.04:9.2f}{'':11s}{'OBSERVATION DATA':20s}{'M (MIXED)':20s}",
                "RINEX VERSION / TYPE"),

@@ -1,0 +1,130 @@
+"""Write a complete simulated recording: motion → IMU, GNSS, video; reference for scoring."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from estimator.frames import ned_to_ecef
+from estimator.records import Calibration, Hull
+
+from .. import format as fmt
+from ..rinex import read_nav, write_obs
+from .gnss import GnssErrorModel, simulate_gnss
+from .imu import simulate_imu
+from .motion import ShipMotion
+from .scenarios import SCENARIOS, Scenario
+from .scene import PortScene, camera_calibration
+
+NAV_FILE = Path(__file__).resolve().parent.parent / "data" / "nagoya_2024-06-24.nav"
+FRAME_RATE_HZ = 10.0
+IMU_RATE_HZ = 100.0
+
+
+class Progress:
+    """One-line terminal progress for a named stage (stderr, so stdout stays clean)."""
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self._t0 = time.monotonic()
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        frac = done / max(total, 1)
+        bar = "#" * int(30 * frac)
+        elapsed = time.monotonic() - self._t0
+        sys.stderr.write(f"\r{stage:<10} [{bar:<30}] {done}/{total}  {elapsed:5.1f} s")
+        if done >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def simulate(
+    scenario_name: str,
+    seed: int,
+    out: str | Path,
+    duration_s: float | None = None,
+    progress: bool = True,
+    gnss_errors: GnssErrorModel | None = None,
+) -> Path:
+    """Simulate ``scenario_name`` with ``seed`` into the directory ``out`` and return it."""
+    if scenario_name not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario_name!r}; choose one of {sorted(SCENARIOS)}")
+    scenario: Scenario = SCENARIOS[scenario_name]
+    duration = float(duration_s if duration_s is not None else scenario.duration_s)
+    if not 1.0 <= duration <= scenario.duration_s:
+        raise ValueError(
+            f"duration must be within 1..{scenario.duration_s:g} s for {scenario_name}")
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"output directory {out} exists and is not empty")
+    (out / "gnss").mkdir(parents=True, exist_ok=True)
+    (out / "reference").mkdir(exist_ok=True)
+    show = Progress(progress)
+    start = scenario.start_gpst
+    lat, lon, h = scenario.origin_llh_deg
+    origin = np.array([np.radians(lat), np.radians(lon), h])
+
+    motion = ShipMotion(scenario, seed)
+    camera = camera_calibration(scenario)
+    antennas = scenario.antennas_body()
+
+    imu, imu_cal, _imu_truth = simulate_imu(motion, scenario, seed, start, rate_hz=IMU_RATE_HZ)
+    keep = imu.time <= start + duration + 1e-9
+    imu.time, imu.gyro, imu.accel = imu.time[keep], imu.gyro[keep], imu.accel[keep]
+    show("imu", 1, 1)
+
+    nav = read_nav(NAV_FILE)
+    shutil.copyfile(NAV_FILE, out / "gnss" / "nav.rnx")
+    epochs, _gnss_truth = simulate_gnss(
+        scenario,
+        lambda t, i: motion.point_position_ned(t, antennas[i]),
+        nav, start, duration, seed, errors=gnss_errors,
+        progress=lambda d, n: show("gnss", d, n),
+    )
+    centre = ned_to_ecef(motion.point_position_ned(0.0, antennas.mean(axis=0)), origin)
+    obs_files = []
+    for i, rx_epochs in enumerate(epochs):
+        name = f"gnss/rx{i + 1}.obs"
+        write_obs(out / name, rx_epochs, marker_name=f"{scenario.name.upper()}-ANT{i + 1}",
+                  receiver_type="BERTHING-AID SIM", approx_position_ecef=centre, interval=1.0,
+                  comments=[f"simulated {scenario.name} seed {seed}; one clock for 4 receivers"],
+                  run_date=scenario.start)
+        obs_files.append(name)
+
+    scene = PortScene.build(scenario, seed)
+    rng = np.random.default_rng(seed + 1000)
+    n_frames = int(np.floor(duration * FRAME_RATE_HZ + 1e-9)) + 1
+    frame_times = start + np.arange(n_frames) / FRAME_RATE_HZ
+    with fmt.VideoWriter(out / "video.mp4", (camera.width, camera.height), FRAME_RATE_HZ) as video:
+        for k, t in enumerate(frame_times):
+            state = motion.state(t - start)
+            C_b_l = state.C_body_to_level[0]
+            cam_pos = motion.point_position_ned(t - start, camera.lever_arm_body)
+            C_level_to_camera = (C_b_l @ camera.C_camera_to_body).T
+            video.write(scene.render(C_level_to_camera, cam_pos, t - start, camera, rng))
+            show("video", k + 1, n_frames)
+    fmt.write_frame_times(out, frame_times)
+    fmt.write_imu(out, imu)
+    fmt.write_calibration(out, Calibration(camera=camera, antennas_body=antennas, imu=imu_cal))
+    berth = np.array([[0.0, scenario.quay_east_range[0]], [0.0, scenario.quay_east_range[1]]])
+    fmt.write_hull(out, Hull(scenario.hull_outline(), scenario.hull_length_m, scenario.hull_beam_m,
+                             berth))
+
+    ref_t = imu.time
+    state = motion.state(ref_t - start)
+    fmt.write_reference(out, fmt.ReferenceTrajectory.from_ned(
+        ref_t, state.position_ned, state.velocity_ned, np.degrees(state.euler), origin))
+    points, kinds = scene.scene_points()
+    fmt.write_scene_points(out, points, kinds)
+
+    fmt.write_manifest(out, fmt.Manifest(
+        name=f"{scenario.name}-seed{seed}", scenario=scenario.name, seed=seed, start_gpst=start,
+        duration_s=duration, origin_llh_deg=list(scenario.origin_llh_deg),
+        files=fmt.default_files(obs_files)))
+    return out
