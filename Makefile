@@ -3,7 +3,7 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup run test lint
+.PHONY: setup browser run test lint
 
 $(BIN)/berthing-aid: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -13,10 +13,17 @@ $(BIN)/berthing-aid: pyproject.toml
 
 setup: $(BIN)/berthing-aid
 
+# The page's end-to-end tests drive Debian's Chromium (Playwright cannot download browsers here).
+browser:
+	@command -v chromium >/dev/null 2>&1 || { \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null; }
+
 run: setup
 	$(BIN)/berthing-aid serve
 
-test: setup
+test: setup browser
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
