@@ -1,0 +1,376 @@
+"""Error-state EKF (estimator/ekf.py) and the fusion engine (estimator/pipeline.py).
+
+a) the measurement Jacobians against finite differences of the measurement models;
+b) a simulated small-boat run (motion + MEMS IMU + four-receiver GNSS of ``recordings.sim``):
+   NEES consistency and the accuracy of INS + CPP, the satellite-blocking scenarios of thesis
+   tables 19 and 21 (tight vs loose coupling with 3 satellites, common vs separate clocks);
+c) the VO measurement models with VO outputs made from the truth (wrong scale, drifting
+   world), and a short end-to-end run with rendered frames through the real VO.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from estimator.ekf import ErrorStateEkf
+from estimator.frames import dcm_to_rotvec, euler_to_dcm, rotvec_to_dcm
+from estimator.ins import Ins, InsState
+from estimator.pipeline import Fusion, FusionOptions
+from estimator.records import Calibration, ImuCalibration
+from estimator.vo import VoOutput, umeyama_alignment
+from recordings.rinex import read_nav
+from recordings.sim.gnss import simulate_gnss
+from recordings.sim.imu import simulate_imu
+from recordings.sim.motion import ShipMotion
+from recordings.sim.scenarios import SMALL_BOAT
+from recordings.sim.scene import camera_calibration
+from recordings.sim.simulate import NAV_FILE
+
+DURATION_S = 65.0
+BLOCK_AFTER_S = 30.0  # thesis: 30 s with every satellite, then the blocking scenario
+SEED = 3
+SCENARIO = SMALL_BOAT
+TABLE21 = {0: ["G05"], 1: ["G18"], 2: ["G24"], 3: ["G20"]}  # one satellite per receiver
+THREE_SATS = ["G05", "G18", "G24"]  # spread in azimuth (62°, 313°, 197°)
+
+
+@dataclass
+class Sim:
+    motion: ShipMotion
+    calibration: Calibration
+    nav: object
+    imu: object
+    epochs: list
+    imu_truth: dict
+
+    def truth(self, t_gpst: float):
+        return self.motion.state(t_gpst - SCENARIO.start_gpst)
+
+
+@pytest.fixture(scope="module")
+def sim() -> Sim:
+    nav = read_nav(NAV_FILE)
+    motion = ShipMotion(SCENARIO, SEED)
+    imu, imu_cal, imu_truth = simulate_imu(motion, SCENARIO, SEED, SCENARIO.start_gpst)
+    keep = imu.time <= SCENARIO.start_gpst + DURATION_S + 1e-9
+    imu.time, imu.gyro, imu.accel = imu.time[keep], imu.gyro[keep], imu.accel[keep]
+    antennas = SCENARIO.antennas_body()
+    epochs, _ = simulate_gnss(SCENARIO, lambda t, i: motion.point_position_ned(t, antennas[i]),
+                              nav, SCENARIO.start_gpst, DURATION_S, SEED)
+    cal = Calibration(camera=camera_calibration(SCENARIO), antennas_body=antennas, imu=imu_cal)
+    return Sim(motion, cal, nav, imu, epochs, imu_truth)
+
+
+@dataclass
+class Sample:
+    t: float  # s since the scenario start
+    dp: np.ndarray  # position error (relative to the world origin), m
+    dv: np.ndarray
+    de: np.ndarray  # attitude error, rad (small angle in L)
+    P_r: np.ndarray
+    P_v: np.ndarray
+    P_e: np.ndarray
+
+
+def run(sim: Sim, options: FusionOptions, vo_feed=None, every: int = 10):
+    """Drive the fusion with the simulated messages in time order; sample the errors."""
+    f = Fusion(sim.calibration, sim.nav, options)
+    imu, epochs = sim.imu, sim.epochs
+    out: list[Sample] = []
+    p0 = None
+    ke = 0
+    for k, t in enumerate(imu.time):
+        f.process_imu(t, imu.gyro[k], imu.accel[k])
+        while ke < len(epochs[0]) and epochs[0][ke].time <= t + 1e-9:
+            f.process_gnss(epochs[0][ke].time, [epochs[i][ke] for i in range(4)])
+            ke += 1
+        if vo_feed is not None and k % 10 == 0:
+            vo_feed(f, t)
+        if f.ekf is None or k % every:
+            continue
+        if p0 is None:
+            p0 = sim.truth(f.origin_time).position_ned[0]
+        s = f.state()
+        tr = sim.truth(s.time)
+        ix, P = f.ekf.ix, f.ekf.P
+        out.append(Sample(
+            t=s.time - SCENARIO.start_gpst, dp=s.position_ned - (tr.position_ned[0] - p0),
+            dv=s.velocity_ned - tr.velocity_ned[0],
+            de=dcm_to_rotvec(s.C_body_to_level @ tr.C_body_to_level[0].T),
+            P_r=s.position_cov, P_v=P[ix.V, ix.V].copy(), P_e=s.attitude_cov))
+    return f, out
+
+
+def horizontal_stats(samples: list[Sample], t_from: float = BLOCK_AFTER_S):
+    h = np.array([s.dp[:2] for s in samples if s.t >= t_from])
+    std = float(np.sqrt(np.mean(np.sum((h - h.mean(axis=0)) ** 2, axis=1))))
+    return std, float(np.max(np.linalg.norm(h, axis=1)))
+
+
+def nees(samples: list[Sample], err: str, cov: str, t_from: float) -> float:
+    vals = [getattr(s, err) @ np.linalg.solve(getattr(s, cov), getattr(s, err))
+            for s in samples if s.t >= t_from]
+    return float(np.mean(vals))
+
+
+# ------------------------------------------------------------------- measurement Jacobians
+
+
+def test_measurement_jacobians_match_finite_differences():
+    """y = measured − predicted = H x with x = estimate − truth: perturbing the nominal state
+    by δ must change every innovation by H δ."""
+    origin = np.array([np.radians(34.72), np.radians(135.33), 37.0])
+    C = euler_to_dcm(0.03, -0.02, 0.7)
+    ins = Ins(origin, ImuCalibration(), InsState(0.0, np.array([1.0, 2.0, 0.1]),
+                                                 np.array([1.0, 0.5, 0.0]), C))
+    antennas = SMALL_BOAT.antennas_body()
+    cam = camera_calibration(SMALL_BOAT)
+    ekf = ErrorStateEkf(ins, antennas, camera_to_body=cam.C_camera_to_body,
+                        camera_lever_body=cam.lever_arm_body)
+    gyro, accel = np.array([0.01, -0.02, 0.15]), np.array([0.3, 0.1, -9.8])
+    for k in range(1, 101):  # 1 s of turning: the clone (previous epoch) differs from now
+        ekf.propagate(0.01 * k, gyro, accel)
+    ekf.delays = np.array([0.01, -0.03, 0.02])
+    C_wc = (C @ cam.C_camera_to_body).T
+    ekf.start_vo_segment(0, C_wc, np.array([0.2, 0.1, 1.0]), 3.0, 1.0)
+    ix = ekf.ix
+    u = np.array([0.3, -0.5, -0.81])
+    u /= np.linalg.norm(u)
+    # A VO attitude that agrees with the prediction (innovations are small in operation).
+    C_wc_now = (ekf.nominal.C_body_to_level @ cam.C_camera_to_body).T @ ekf.vo.C_world_to_level
+    p_w = np.array([0.5, -0.2, 2.0])
+
+    def innovations() -> np.ndarray:
+        eta = [ekf.eta_model(a, u, 1.0)[0] for a in range(4)]
+        sd = [ekf.sd_model(i, j, -u)[0] for i, j in ((0, 1), (0, 3), (2, 1))]
+        y_th, _, y_d, _ = ekf.vo_innovation(C_wc_now, p_w)
+        return -np.array([*eta, *sd, *(-y_th), *(-y_d)])  # measured fixed: y = −predicted
+
+    def perturb(delta: np.ndarray) -> None:
+        ekf.ins.correct(d_position=-delta[ix.R], d_attitude=-delta[ix.E])
+        ekf.nominal = ekf.ins.state
+        ekf.delays = ekf.delays + delta[ix.D]
+        ekf.clock_drift = ekf.clock_drift + delta[ix.Z]
+        vo = ekf.vo
+        vo.C_world_to_level = rotvec_to_dcm(delta[ix.TH]) @ vo.C_world_to_level
+        vo.scale += float(delta[ix.S][0])
+        vo.origin_ned = vo.origin_ned + delta[ix.DV]
+        ekf._clone_position = ekf._clone_position + delta[ix.R0]
+        ekf._clone_attitude = rotvec_to_dcm(delta[ix.E0]) @ ekf._clone_attitude
+
+    H = np.array([*(ekf.eta_model(a, u, 1.0)[1] for a in range(4)),
+                  *(ekf.sd_model(i, j, -u)[1] for i, j in ((0, 1), (0, 3), (2, 1))),
+                  *ekf.vo_innovation(C_wc_now, p_w)[1], *ekf.vo_innovation(C_wc_now, p_w)[3]])
+    y0 = innovations()
+    rng = np.random.default_rng(1)
+    delta = np.zeros(ix.n)
+    for block, scale in ((ix.R, 0.01), (ix.E, 1e-4), (ix.D, 0.01), (ix.Z, 0.01),
+                         (ix.TH, 1e-4), (ix.S, 0.01), (ix.DV, 0.01), (ix.R0, 0.01),
+                         (ix.E0, 1e-4)):
+        delta[block] = rng.normal(0.0, scale, block.stop - block.start)
+    perturb(delta)
+    dy = innovations() - y0
+    np.testing.assert_allclose(dy, H @ delta, atol=2e-6)
+    # the bias columns stay empty: biases enter through the propagation only
+    assert not np.any(H[:, ix.BG]) and not np.any(H[:, ix.BA])
+
+
+# ------------------------------------------------------------------ INS + CPP on the boat
+
+
+def test_ins_cpp_consistency_and_accuracy(sim):
+    """All satellites: NEES of position, velocity and attitude within chi-square bounds;
+    horizontal error σ ≤ 5 cm (thesis table 17: 4.8 cm), heading error σ ≤ 0.2° (table 20:
+    0.05–0.23° for a 10 cm array)."""
+    f, samples = run(sim, FusionOptions(use_vo=False))
+    st = f.status()
+    assert st.phase == "fused" and st.compass_fixed and st.satellites >= 9
+    assert f.origin_time - SCENARIO.start_gpst <= 3.0  # compass fix within a few epochs
+    for err, cov in (("dp", "P_r"), ("dv", "P_v"), ("de", "P_e")):
+        value = nees(samples, err, cov, 20.0) / 3.0
+        assert 0.3 < value < 3.0, (err, value)
+    std, _ = horizontal_stats(samples, 20.0)
+    assert std <= 0.05
+    yaw = np.degrees([s.de[2] for s in samples if s.t >= 20.0])
+    assert np.sqrt(np.mean(np.square(yaw))) <= 0.2 and np.max(np.abs(yaw)) < 0.4
+    assert np.max(np.abs(np.degrees([s.de[:2] for s in samples if s.t >= 20.0]))) < 0.1
+    # Nothing to reject in clean data (cycle slips are caught before the EKF).
+    stats = f.ekf.stats
+    assert stats["eta"].rejected <= 0.002 * stats["eta"].accepted
+    assert stats["zeta"].rejected <= 0.002 * stats["zeta"].accepted
+    assert 0.3 < stats["eta"].mean_nis_per_dof < 2.0
+    timing = f.timing()
+    assert timing["imu"] < 1.0 and timing["gnss"] < 100.0  # ms per call (≥ 2× real time)
+
+
+def test_common_clock_beats_separate_clocks(sim):
+    """Thesis table 21: four satellites, each seen by one receiver only. One clock-drift state
+    for the common clock keeps the trajectory (0.063 m σ in the thesis), four separate ones
+    cannot solve velocity + 4 drifts from 4 rows (1.44 m σ)."""
+    common = FusionOptions(use_vo=False, per_receiver_sats=TABLE21, keep_after_s=BLOCK_AFTER_S)
+    separate = dataclasses.replace(common, common_clock=False)
+    f_c, s_c = run(sim, common)
+    f_s, s_s = run(sim, separate)
+    std_c, max_c = horizontal_stats(s_c)
+    std_s, max_s = horizontal_stats(s_s)
+    assert f_c.status().satellites == 4
+    assert std_c < 0.1 and max_c < 0.3
+    assert std_s > 5.0 * std_c and max_s > 0.5
+
+
+def test_tight_coupling_with_three_satellites(sim):
+    """Thesis tables 18–19: with 3 satellites the loosely coupled velocity does not exist
+    (4 unknowns per receiver), the tightly coupled η with the common clock still helps."""
+    tight = FusionOptions(use_vo=False, satellites_keep=THREE_SATS, keep_after_s=BLOCK_AFTER_S)
+    loose = dataclasses.replace(tight, tightly_coupled=False)
+    f_t, s_t = run(sim, tight)
+    f_l, s_l = run(sim, loose)
+    std_t, _ = horizontal_stats(s_t)
+    std_l, _ = horizontal_stats(s_l)
+    assert f_t.status().satellites == 3 and f_l.status().satellites == 0
+    assert f_l.status().phase == "degraded"
+    assert std_t < 0.5 and std_l > 3.0 * std_t
+    # The single differences still hold the heading with 3 satellites.
+    yaw = np.degrees([s.de[2] for s in s_t if s.t >= BLOCK_AFTER_S])
+    assert np.sqrt(np.mean(np.square(yaw))) < 0.3
+
+
+# --------------------------------------------------------------------------- VO models
+
+
+def test_vo_models_estimate_scale_and_remove_drift(sim):
+    """VO outputs made from the truth in a world that is scaled wrongly and keeps drifting
+    (rotation, scale and origin): the EKF finds the scale within 1 % and maps the VO
+    trajectory and structure back onto the truth while the raw drift grows to ~0.4 m."""
+    cam = sim.calibration.camera
+    t_vo = 25.0
+    S0, scale_rate = 4.0, 2e-4  # metres per VO unit, and its drift (1/s)
+    drift_rate = np.array([0.008, -0.008, 0.002])  # m/s of the VO origin
+    rot_rate = np.radians([0.003, -0.003, 0.008])  # rad/s of the VO world
+    st = sim.motion.state(t_vo)
+    C_w_l = st.C_body_to_level[0] @ cam.C_camera_to_body
+    o0 = sim.motion.point_position_ned(t_vo, cam.lever_arm_body)
+    rng = np.random.default_rng(2)
+    end = sim.motion.state(DURATION_S).position_ned[0]
+    pts = end + np.column_stack([rng.uniform(5, 30, 100), rng.uniform(-20, 20, 100),
+                                 rng.uniform(-3, 0.5, 100)])
+    log = []
+
+    def world(tau: float):
+        return (rotvec_to_dcm(rot_rate * tau) @ C_w_l, S0 * (1 + scale_rate * tau),
+                o0 + drift_rate * tau)
+
+    def feed(f: Fusion, t: float) -> None:
+        rel = t - SCENARIO.start_gpst
+        if rel < t_vo:
+            return
+        C_eff, S_eff, o_eff = world(rel - t_vo)
+        r_cam = sim.motion.point_position_ned(rel, cam.lever_arm_body)
+        C_b_l = sim.motion.state(rel).C_body_to_level[0]
+        p_w = C_eff.T @ (r_cam - o_eff) / S_eff + rng.normal(0, 0.002, 3)
+        C_wc = (C_b_l @ cam.C_camera_to_body).T @ C_eff @ rotvec_to_dcm(
+            rng.normal(0, np.radians(0.05), 3))
+        f.process_vo(VoOutput(
+            time=t, status="tracking", segment=0, C_world_to_camera=C_wc,
+            camera_position_world=p_w, n_tracked=100, n_inliers=100, is_keyframe=False,
+            points_world=(pts - o_eff) @ C_eff / S_eff, point_ids=np.arange(100),
+            observations=(np.zeros(0, np.int64), np.zeros((0, 2)))))
+        if f.ekf is not None and f.ekf.vo is not None:
+            log.append((rel, S_eff, f.ekf.vo.scale, r_cam, f.ekf.vo_to_level(p_w[None])[0]))
+
+    f, samples = run(sim, FusionOptions(use_vo=True), vo_feed=feed)
+    p0 = sim.truth(f.origin_time).position_ned[0]
+    rel, S_true, S_est, r_cam, mapped = log[-1]
+    assert abs(S_est / S_true - 1.0) < 0.01
+    st = f.status()
+    assert st.scale == pytest.approx(S_est) and st.vo_status == "tracking"
+    raw_drift = np.linalg.norm(drift_rate) * (rel - t_vo)
+    assert raw_drift > 0.4
+    cam_err = [np.linalg.norm(m - (r - p0)) for t, _, _, r, m in log if t > t_vo + 10.0]
+    assert np.sqrt(np.mean(np.square(cam_err))) < 0.05
+    X, sigma, ids = f.structure()
+    assert len(ids) == 100 and np.all(sigma > 0)
+    err = np.linalg.norm(X - (pts[ids] - p0), axis=1)
+    assert np.median(err) < 0.15 and np.median(err) < np.median(sigma)
+    # The VO updates did not disturb the INS + CPP solution.
+    assert horizontal_stats(samples, 20.0)[0] < 0.05
+    assert f.ekf.stats["vo_position"].rejected == 0 and f.ekf.stats["vo_attitude"].rejected == 0
+
+
+# ------------------------------------------------------------------------ end to end
+
+
+def test_end_to_end_with_rendered_frames(sim):
+    """Five seconds of rendered video through the real VO: the fusion maps the VO world, its
+    scale agrees with the truth and the structure points sit at the true depth of the pixels
+    they were seen at."""
+    from recordings.sim.scene import PortScene
+
+    cam = sim.calibration.camera
+    scene = PortScene.build(SCENARIO, SEED)
+    f = Fusion(sim.calibration, sim.nav, FusionOptions(use_vo=True))
+    outputs: dict[float, VoOutput] = {}
+    process = f.vo.process
+
+    def spy(t: float, image: np.ndarray) -> VoOutput:  # keep the raw VO outputs for scoring
+        outputs[t] = process(t, image)
+        return outputs[t]
+
+    f.vo.process = spy
+    rng = np.random.default_rng(4)
+    imu, epochs = sim.imu, sim.epochs
+    t_first, t_last = 40.0, 45.0  # a gentle turn towards the pier
+    truth: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    ke = 0
+    for k, t in enumerate(imu.time):
+        rel = t - SCENARIO.start_gpst
+        if rel > t_last + 1e-9:
+            break
+        f.process_imu(t, imu.gyro[k], imu.accel[k])
+        while ke < len(epochs[0]) and epochs[0][ke].time <= t + 1e-9:
+            f.process_gnss(epochs[0][ke].time, [epochs[i][ke] for i in range(4)])
+            ke += 1
+        if k % 10 or rel < t_first - 1e-9:
+            continue
+        C_l_c = (sim.motion.state(rel).C_body_to_level[0] @ cam.C_camera_to_body).T
+        r_cam = sim.motion.point_position_ned(rel, cam.lever_arm_body)
+        image, depth = scene.render(C_l_c, r_cam, rel, cam, rng, return_depth=True)
+        state = f.process_frame(t, image)
+        assert state is not None and state.time == pytest.approx(t)
+        truth[t] = (C_l_c, r_cam, depth)
+    st = f.status()
+    assert st.vo_status == "tracking" and st.scale is not None and f.ekf.vo is not None
+    seg = f.ekf.vo.segment
+    track = [(o.camera_position_world, truth[t][1]) for t, o in outputs.items()
+             if o.status == "tracking" and o.segment == seg]
+    assert len(track) > 15
+    # Scale of the VO world from the truth: similarity of the VO trajectory onto the truth
+    # (its rotation is ill-determined on a nearly straight track, its scale is not).
+    s_true, _, _ = umeyama_alignment(np.array([p for p, _ in track]),
+                                     np.array([r for _, r in track]))
+    assert st.scale == pytest.approx(s_true, rel=0.05)
+    p0 = sim.truth(f.origin_time).position_ned[0]
+    t_end = max(outputs)
+    out = outputs[t_end]
+    C_l_c, r_cam, depth = truth[t_end]
+    mapped = f.ekf.vo_to_level(out.camera_position_world[None])[0] + p0
+    assert np.linalg.norm(mapped - r_cam) < 0.1
+    # Structure: the fused points seen in the last frame lie at the rendered depth of their
+    # pixels (what is left is the VO's triangulation error along the viewing direction).
+    X, sigma, ids = f.structure()
+    index = {int(i): k for k, i in enumerate(ids)}
+    depth_err = []
+    for pid, (u, v) in zip(*out.observations, strict=True):
+        z_true = float(depth[int(round(v)), int(round(u))])
+        if int(pid) in index and np.isfinite(z_true):
+            z_fused = C_l_c[2] @ (X[index[int(pid)]] + p0 - r_cam)
+            depth_err.append(abs(z_fused / z_true - 1.0))
+    assert len(depth_err) > 30 and np.median(depth_err) < 0.2
+    assert np.all(np.isfinite(sigma)) and np.all(sigma > 0)
+    stats = f.ekf.stats
+    assert stats["vo_position"].accepted > 20 and stats["vo_position"].rejected == 0
+    assert stats["vo_attitude"].rejected == 0
