@@ -1,0 +1,1016 @@
+"""Visual odometry block (thesis fig. 17 "VO演算部", SPEC section 4 "VO block").
+
+Monocular, causal, frame by frame: ORB corners are detected at keyframes and followed by
+pyramidal Lucas–Kanade with a forward–backward check; the first map comes from the essential
+matrix (5-point + RANSAC) between a reference frame and a later frame with enough parallax,
+later frames are located by PnP + RANSAC on the map points, new points are triangulated at
+keyframes and a local bundle adjustment refines the last keyframes and their points. RANSAC
+(E, PnP) and the triangulation / BA residual checks drop points that do not move rigidly with
+the port (water, other boats). There is no loop closure (a berthing path does not revisit).
+
+Initialisation is the delicate part: a quay tens of metres ahead seen while moving towards it
+gives little parallax, and the two-view problem then has several solutions of nearly equal
+epipolar cost (rotation traded against sideways translation, the translation direction off by
+tens of degrees) between which RANSAC picks at random, helped by water texture drifting along
+the epipolar lines. Once the map is built on a wrong one, bundle adjustment stays in that
+basin. Hence: tracks must be epipolar inliers over several frame pairs since the reference;
+several two-view geometries are scored by how well their map explains every frame since the
+reference (located by PnP); two consecutive attempts must agree; and the located frames in
+between join the first bundle adjustment as keyframes.
+
+Conventions (``estimator.frames``): camera C right-down-forward; the world frame W of a segment
+is the camera frame of its first keyframe (C0), the reference frame the initialisation started
+from (``VoOutput.world_time``, earlier than the segment's first pose). A pose maps
+``x_C = C_world_to_camera @ x_W + t_C``. ``C_world_to_camera`` is the thesis' ``C_W^C``, from
+which the fusion forms the VO relative attitude ``Θ: C_B0^L = Ĉ_B^L · C_C^B · C_W^C · C_B0^W``;
+``t_C`` is its ``t^C`` and the camera centre in W, ``-C_W^C.T @ t^C = -C_C^W · t^C``, is the
+bracket of the thesis' ``d``. Positions are scale-free: the first baseline (reference frame →
+the frame at which the VO initialised, both keyframes) has length 1.
+
+Image points are handled as undistorted normalised coordinates ``xy`` (``x/z, y/z`` in C); pixel
+thresholds are converted with the mean focal length.
+
+When tracking is lost (too few PnP inliers) the map is dropped and a new world is initialised;
+``segment`` then changes so the fusion can reset its VO states (attitude drift, scale, drift of
+``d``) instead of reading a jump of the trajectory.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import csr_matrix
+
+from estimator.frames import skew
+from estimator.records import CameraCalibration
+
+STAGES = ("detect", "track", "pose", "triangulate", "ba")
+
+
+@dataclass
+class VoParams:
+    """Tuning of the VO block. Pixel values refer to the full-size undistorted image."""
+
+    n_features: int = 500  # live tracks wanted; ORB tops them up at keyframes
+    orb_fast_threshold: int = 10  # FAST threshold of the ORB detector (grey levels)
+    orb_levels: int = 3  # ORB pyramid levels (few: corners are only seeds for LK)
+    min_feature_distance_px: float = 20.0  # one new corner per cell of this size, none near tracks
+    lk_window: int = 21  # LK window side (px)
+    lk_levels: int = 3  # LK pyramid levels above the full image
+    fb_threshold_px: float = 0.7  # forward–backward LK disagreement that cuts a track
+    min_tracked: int = 30  # fewer PnP inliers than this: tracking lost
+    init_min_parallax_px: float = 6.0  # median track displacement before E is tried
+    init_min_angle_deg: float = 0.7  # median triangulation angle the first map must reach
+    init_min_points: int = 60  # triangulated points the first map must have
+    init_views: int = 4  # keyframes made at initialisation (reference, frames between, now)
+    init_attempt_interval: int = 2  # frames between attempts (each tries several geometries)
+    init_agreement_deg: float = 0.15  # consecutive attempts must agree (attitude; 10x for the
+    # direction of travel) before the first map is accepted
+    keyframe_parallax_px: float = 40.0  # median displacement of tracks since the last keyframe
+    keyframe_baseline_ratio: float = 0.01  # baseline / median scene depth since the last keyframe
+    keyframe_track_ratio: float = 0.7  # tracked map points below this share of the last keyframe
+    keyframe_max_interval_s: float = 1.0  # at the latest: PnP poses drift between BAs when slow
+    ransac_threshold_px: float = 1.0  # epipolar distance of the E RANSAC
+    pnp_threshold_px: float = 1.5  # reprojection error of the PnP RANSAC
+    min_triangulation_angle_deg: float = 0.5  # parallax a new point needs
+    max_reprojection_px: float = 1.5  # reprojection error allowed for a new point
+    ba_window: int = 6  # keyframes in the local BA (KF0, later the oldest two, held fixed)
+    ba_huber_px: float = 1.0  # threshold of the (pseudo-)Huber BA loss
+    ba_max_nfev: int = 10  # function evaluations of one BA
+    ba_outlier_px: float = 2.0  # points with a larger BA residual are dropped
+    history_frames: int = 40  # recent frames kept to check new points against their whole track
+    history_checks: int = 8  # at most this many of them checked per new point set
+
+
+@dataclass
+class VoOutput:
+    time: float
+    status: str  # "initialising" | "tracking" | "lost"
+    # Id of the world frame W of the pose. Starts at 0 and is incremented when tracking is
+    # lost, so every (re)initialised W has its own id: poses of different segments are unrelated.
+    segment: int
+    C_world_to_camera: np.ndarray | None  # C_W^C (3x3), None unless tracking
+    camera_position_world: np.ndarray | None  # camera centre in W, first baseline = 1
+    n_tracked: int  # live LK tracks
+    n_inliers: int  # PnP (or E at initialisation) inliers among the map points
+    is_keyframe: bool
+    points_world: np.ndarray  # (M,3) local map (points of the BA window and tracked), in W
+    point_ids: np.ndarray  # (M,) stable ids (accumulate by id to keep points leaving the map)
+    observations: tuple[np.ndarray, np.ndarray]  # (ids, (K,2) distorted pixel uv) in this frame
+    # Time of the frame whose camera frame is W (the segment's reference frame). It precedes
+    # the first pose of the segment by the initialisation time: the fusion takes B0 (body
+    # attitude at W) at this time, not at the first "tracking" output.
+    world_time: float | None = None
+
+
+# ---------------------------------------------------------------------------- geometry
+
+
+def normalise_points(pts: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Undistorted pixel coordinates (N,2) → normalised coordinates x/z, y/z."""
+    h = np.column_stack([pts, np.ones(len(pts))]) @ np.linalg.inv(K).T
+    return h[:, :2] / h[:, 2:]
+
+
+def sampson_distance(E: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndarray:
+    """First-order geometric error of ``x1ᵀ E x0 = 0`` (normalised units, signed)."""
+    h0 = np.column_stack([xy0, np.ones(len(xy0))])
+    h1 = np.column_stack([xy1, np.ones(len(xy1))])
+    Ex0 = h0 @ E.T
+    Etx1 = h1 @ E
+    num = np.sum(h1 * Ex0, axis=1)
+    den = Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2
+    return num / np.sqrt(np.maximum(den, 1e-30))
+
+
+def triangulate(C0: np.ndarray, t0: np.ndarray, C1: np.ndarray, t1: np.ndarray,
+                xy0: np.ndarray, xy1: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of normalised points seen from poses (C_W^C, t^C)."""
+    if len(xy0) == 0:
+        return np.zeros((0, 3))
+    P0 = np.hstack([C0, np.reshape(t0, (3, 1))])
+    P1 = np.hstack([C1, np.reshape(t1, (3, 1))])
+    Xh = cv2.triangulatePoints(P0, P1, np.ascontiguousarray(xy0.T, dtype=np.float64),
+                               np.ascontiguousarray(xy1.T, dtype=np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (Xh[:3] / Xh[3]).T
+
+
+def triangulation_quality(X: np.ndarray, C0: np.ndarray, t0: np.ndarray, C1: np.ndarray,
+                          t1: np.ndarray, xy0: np.ndarray, xy1: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cheirality (in front of both cameras), largest reprojection error of the two views
+    (normalised units) and parallax angle (rad) of triangulated points."""
+    Xc0 = X @ C0.T + t0
+    Xc1 = X @ C1.T + t1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        front = np.isfinite(X).all(axis=1) & (Xc0[:, 2] > 0) & (Xc1[:, 2] > 0)
+        e0 = np.linalg.norm(Xc0[:, :2] / Xc0[:, 2:] - xy0, axis=1)
+        e1 = np.linalg.norm(Xc1[:, :2] / Xc1[:, 2:] - xy1, axis=1)
+        r0 = X + C0.T @ t0  # ray from centre 0 = X - (-C0ᵀ t0)
+        r1 = X + C1.T @ t1
+        cos = np.sum(r0 * r1, axis=1) / (np.linalg.norm(r0, axis=1) * np.linalg.norm(r1, axis=1))
+    err = np.where(front, np.maximum(e0, e1), np.inf)
+    angle = np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1.0, 1.0))
+    return front, err, angle
+
+
+def relative_pose_normalised(xy0: np.ndarray, xy1: np.ndarray, threshold: float,
+                             confidence: float = 0.999
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Relative pose of view 1 w.r.t. view 0 from normalised points: ``x1 = R x0 + t``,
+    |t| = 1, with the inlier mask (epipolar distance below ``threshold`` and in front of both
+    cameras). None when no model is found.
+
+    The 5-point RANSAC is OpenCV's USAC_ACCURATE variant: its local optimisation and final
+    least-squares polish on all inliers matter here, where plain RANSAC returns the model of
+    one minimal sample, off by degrees under a small parallax."""
+    if len(xy0) < 8:
+        return None
+    xy0 = np.ascontiguousarray(xy0, dtype=np.float64)
+    xy1 = np.ascontiguousarray(xy1, dtype=np.float64)
+    E, mask = cv2.findEssentialMat(xy0, xy1, np.eye(3), method=cv2.USAC_ACCURATE, prob=confidence,
+                                   threshold=threshold)
+    if E is None or E.shape != (3, 3) or mask is None:
+        return None
+    inl = mask.ravel() > 0
+    if inl.sum() < 8:
+        return None
+    # recoverPose picks the decomposition by cheirality (its mask also drops points farther than
+    # 50 baselines, i.e. most of a distant quay, so it is not used for the inliers).
+    _, R, t, _ = cv2.recoverPose(E, xy0, xy1, np.eye(3), mask=mask.copy())
+    t = t.ravel() / np.linalg.norm(t)
+    X = triangulate(np.eye(3), np.zeros(3), R, t, xy0, xy1)
+    front, _, _ = triangulation_quality(X, np.eye(3), np.zeros(3), R, t, xy0, xy1)
+    inl = (np.abs(sampson_distance(skew(t) @ R, xy0, xy1)) < threshold) & front
+    return R, t, inl
+
+
+def relative_pose(pts0: np.ndarray, pts1: np.ndarray, K: np.ndarray, threshold_px: float = 1.0,
+                  confidence: float = 0.999
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``relative_pose_normalised`` for undistorted pixel points of a camera with intrinsics K:
+    returns (C_0_to_1, unit t^C1, inlier mask) or None."""
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    return relative_pose_normalised(normalise_points(pts0, K), normalise_points(pts1, K),
+                                    threshold_px / f, confidence)
+
+
+def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = True
+                      ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising ``Σ |dst - (s R src + t)|²`` (Umeyama 1991)."""
+    src = np.asarray(src, float)
+    dst = np.asarray(dst, float)
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    xs, xd = src - mu_s, dst - mu_d
+    U, D, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / np.mean(np.sum(xs**2, axis=1))) if with_scale else 1.0
+    return s, R, mu_d - s * R @ mu_s
+
+
+# ------------------------------------------------------------------------ bundle adjustment
+
+
+def _whitening(H: np.ndarray) -> np.ndarray:
+    """Q with Qᵀ H Q ≈ I for a stack of symmetric blocks (a small ridge keeps directions the
+    data do not constrain, e.g. the depth of a point seen once, from being stretched without
+    bound)."""
+    n = H.shape[-1]
+    ridge = 1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] / n + 1e-12
+    L = np.linalg.cholesky(H + ridge * np.eye(n))
+    return np.linalg.inv(L).transpose(0, 2, 1)
+
+
+def bundle_adjust(C_world_to_camera: np.ndarray, t_camera: np.ndarray, points: np.ndarray,
+                  camera_index: np.ndarray, point_index: np.ndarray, xy: np.ndarray,
+                  fixed: np.ndarray, focal: float, huber_px: float = 1.0, max_nfev: int = 10
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Minimise the reprojection error (pixels, pseudo-Huber loss of threshold ``huber_px``)
+    over the free poses and all points.
+
+    Poses (K,3,3)/(K,3) map W into each camera; observation o is point ``point_index[o]`` seen
+    at normalised ``xy[o]`` by camera ``camera_index[o]``. A free pose is updated as
+    ``C = exp([δ×]) C_init`` (no Rodrigues singularity whatever the attitude). The Jacobian is
+    analytic and sparse (a row pair touches one pose and one point), solved by LSMR.
+    Returns the refined poses, points and the per-observation residual norm (px).
+    """
+    n_cam, n_pt, n_obs = len(C_world_to_camera), len(points), len(xy)
+    free = np.flatnonzero(~np.asarray(fixed, bool))
+    slot = np.full(n_cam, -1)
+    slot[free] = np.arange(len(free))
+    n_pose = 6 * len(free)
+    ci, pi = np.asarray(camera_index), np.asarray(point_index)
+    obs_free = slot[ci] >= 0
+    C_init = np.asarray(C_world_to_camera, float)
+
+    # Sparsity pattern is fixed: rows (2 per observation) × pose columns and point columns.
+    o = np.arange(n_obs)
+    rows_pt = np.broadcast_to(2 * o[:, None, None] + np.arange(2)[None, :, None], (n_obs, 2, 3))
+    cols_pt = np.broadcast_to(n_pose + 3 * pi[:, None, None] + np.arange(3), (n_obs, 2, 3))
+    of = o[obs_free]
+    rows_cam = np.broadcast_to(2 * of[:, None, None] + np.arange(2)[None, :, None],
+                               (len(of), 2, 6))
+    cols_cam = np.broadcast_to(6 * slot[ci[of]][:, None, None] + np.arange(6), (len(of), 2, 6))
+    rows = np.concatenate([rows_cam.ravel(), rows_pt.ravel()])
+    cols = np.concatenate([cols_cam.ravel(), cols_pt.ravel()])
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        C = C_init.copy()
+        t = np.array(t_camera, float)
+        dexp = np.zeros((n_cam, 3, 3, 3))
+        for k, c in enumerate(free):
+            Rd, J = cv2.Rodrigues(x[6 * k:6 * k + 3])
+            C[c] = Rd @ C_init[c]
+            t[c] = x[6 * k + 3:6 * k + 6]
+            dexp[c] = J.reshape(3, 3, 3)  # [k, i, j] = d exp(δ)_ij / d δ_k
+        return C, t, x[n_pose:].reshape(-1, 3), dexp
+
+    x0 = np.concatenate([np.column_stack([np.zeros((len(free), 3)),
+                                          np.asarray(t_camera, float)[free]]).ravel(),
+                         np.asarray(points, float).ravel()])
+
+    def camera_points(x: np.ndarray):
+        C, t, X, dexp = unpack(x)
+        Xc = np.einsum("oij,oj->oi", C[ci], X[pi]) + t[ci]
+        return C, t, X, dexp, Xc
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        Xc = camera_points(x)[4]
+        z = np.maximum(Xc[:, 2:], 1e-9)
+        return (focal * (Xc[:, :2] / z - xy)).ravel()
+
+    def blocks(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """d(residual)/d(pose) of the observations by free cameras and d(residual)/d(point)."""
+        C, _, X, dexp, Xc = camera_points(x)
+        z = np.maximum(Xc[:, 2], 1e-9)
+        A = np.zeros((n_obs, 2, 3))  # d(residual) / d(Xc)
+        A[:, 0, 0] = A[:, 1, 1] = focal / z
+        A[:, 0, 2] = -focal * Xc[:, 0] / z**2
+        A[:, 1, 2] = -focal * Xc[:, 1] / z**2
+        Y = np.einsum("oij,oj->oi", C_init[ci[of]], X[pi[of]])  # point rotated by C_init
+        dXc_ddelta = np.einsum("okij,oj->oik", dexp[ci[of]], Y)
+        return np.concatenate([A[of] @ dXc_ddelta, A[of]], axis=2), A @ C[ci]
+
+    # Block-Jacobi preconditioning as a change of variables x = x0 + Q (y - y0): each pose and
+    # each point is whitened by its own block of JᵀJ, so LSMR is not slowed by the weak depth
+    # direction of far points and few iterations give nearly exact Gauss–Newton steps.
+    d_cam, d_pt = blocks(x0)
+    H_cam = np.zeros((len(free), 6, 6))
+    np.add.at(H_cam, slot[ci[of]], np.einsum("oki,okj->oij", d_cam, d_cam))
+    H_pt = np.zeros((n_pt, 3, 3))
+    np.add.at(H_pt, pi, np.einsum("oki,okj->oij", d_pt, d_pt))
+    Q_cam, Q_pt = _whitening(H_cam), _whitening(H_pt)
+    r0 = fun(x0)
+    # trf starts with a trust radius |y0|: make it the size of a full step (|r0| in whitened
+    # units) instead of growing it from 1.
+    y0 = np.full(len(x0), np.linalg.norm(r0) / np.sqrt(len(x0)) + 1e-3)
+
+    def to_x(y: np.ndarray) -> np.ndarray:
+        dy = y - y0
+        dx_cam = np.einsum("kij,kj->ki", Q_cam, dy[:n_pose].reshape(-1, 6)).ravel()
+        dx_pt = np.einsum("pij,pj->pi", Q_pt, dy[n_pose:].reshape(-1, 3)).ravel()
+        return x0 + np.concatenate([dx_cam, dx_pt])
+
+    def fun_y(y: np.ndarray) -> np.ndarray:
+        return fun(to_x(y))
+
+    def jac_y(y: np.ndarray) -> csr_matrix:
+        d_cam, d_pt = blocks(to_x(y))
+        data = np.concatenate([(d_cam @ Q_cam[slot[ci[of]]]).ravel(), (d_pt @ Q_pt[pi]).ravel()])
+        return csr_matrix((data, (rows, cols)), shape=(2 * n_obs, n_pose + 3 * n_pt))
+
+    # Pseudo-Huber ("soft_l1"): scipy's piecewise "huber" stalls when most residuals start
+    # beyond the threshold (its curvature vanishes there); the smooth version does not.
+    sol = least_squares(fun_y, y0, jac=jac_y, method="trf", loss="soft_l1", f_scale=huber_px,
+                        max_nfev=max_nfev, tr_solver="lsmr",
+                        tr_options={"atol": 1e-6, "btol": 1e-6, "maxiter": 50})
+    x = to_x(sol.x)
+    C, t, X, _ = unpack(x)
+    res = fun(x).reshape(-1, 2)
+    return C, t, X, np.linalg.norm(res, axis=1)
+
+
+def _same_pose_direction(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
+                         p: VoParams) -> bool:
+    """Two poses (C, t) relative to the same reference agree in attitude and in the direction
+    of the camera centre (their scales are arbitrary)."""
+    rot = np.degrees(np.linalg.norm(cv2.Rodrigues(a[0] @ b[0].T)[0]))
+    ca, cb = -a[0].T @ a[1], -b[0].T @ b[1]
+    cos = ca @ cb / (np.linalg.norm(ca) * np.linalg.norm(cb) + 1e-300)
+    return bool(rot < p.init_agreement_deg and
+                np.degrees(np.arccos(np.clip(cos, -1, 1))) < 10 * p.init_agreement_deg)
+
+
+# ------------------------------------------------------------------------------ state
+
+
+@dataclass
+class _Tracks:
+    """Live feature tracks (struct of arrays). A track's id is also the id of its map point."""
+
+    id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # distorted px
+    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # normalised, now
+    anchor_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # first keyframe
+    anchor_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # xy at anchor
+    kf_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # xy at last keyframe
+
+    def __len__(self) -> int:
+        return len(self.id)
+
+    def select(self, index: np.ndarray) -> _Tracks:
+        return _Tracks(self.id[index], self.uv[index], self.xy[index], self.anchor_kf[index],
+                       self.anchor_xy[index], self.kf_xy[index])
+
+    def extend(self, other: _Tracks) -> _Tracks:
+        return _Tracks(*(np.concatenate([a, b]) for a, b in zip(
+            (self.id, self.uv, self.xy, self.anchor_kf, self.anchor_xy, self.kf_xy),
+            (other.id, other.uv, other.xy, other.anchor_kf, other.anchor_xy, other.kf_xy),
+            strict=True)))
+
+
+@dataclass
+class _Keyframe:
+    serial: int  # index in the segment's keyframe list
+    time: float
+    C: np.ndarray  # C_W^C
+    t: np.ndarray  # t^C
+    obs_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    obs_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    @property
+    def centre(self) -> np.ndarray:
+        return -self.C.T @ self.t
+
+    def add(self, ids: np.ndarray, xy: np.ndarray) -> None:
+        self.obs_ids = np.concatenate([self.obs_ids, ids])
+        self.obs_xy = np.concatenate([self.obs_xy, xy])
+
+
+@dataclass
+class _Frame:
+    """A recent frame: its tracks (sorted by id) and its pose once known."""
+
+    time: float
+    ids: np.ndarray
+    xy: np.ndarray
+    C: np.ndarray | None = None
+    t: np.ndarray | None = None
+
+
+class _Map:
+    """Map points of the current segment, sorted by id for vectorised look-ups."""
+
+    def __init__(self) -> None:
+        self.ids = np.zeros(0, np.int64)
+        self.xyz = np.zeros((0, 3))
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def lookup(self, ids: np.ndarray) -> np.ndarray:
+        """Row of each id, -1 when absent."""
+        if len(self.ids) == 0:
+            return np.full(len(ids), -1)
+        pos = np.clip(np.searchsorted(self.ids, ids), 0, len(self.ids) - 1)
+        return np.where(self.ids[pos] == ids, pos, -1)
+
+    def add(self, ids: np.ndarray, xyz: np.ndarray) -> None:
+        ids_all = np.concatenate([self.ids, ids])
+        order = np.argsort(ids_all, kind="stable")
+        self.ids, self.xyz = ids_all[order], np.concatenate([self.xyz, xyz])[order]
+
+    def keep(self, mask: np.ndarray) -> None:
+        self.ids, self.xyz = self.ids[mask], self.xyz[mask]
+
+
+# ------------------------------------------------------------------------------- VO
+
+
+class VisualOdometry:
+    """Causal monocular VO: call ``process`` once per frame in time order."""
+
+    def __init__(self, camera: CameraCalibration, params: VoParams | None = None) -> None:
+        self.camera = camera
+        self.params = params or VoParams()
+        p = self.params
+        self._K = np.asarray(camera.K, float)
+        self._dist = np.asarray(camera.distortion, float).ravel()
+        self._focal = 0.5 * (self._K[0, 0] + self._K[1, 1])
+        self._size = (int(camera.width), int(camera.height))
+        self._orb = cv2.ORB_create(nfeatures=4 * p.n_features, scaleFactor=1.2,
+                                   nlevels=p.orb_levels, edgeThreshold=16, patchSize=16,
+                                   fastThreshold=p.orb_fast_threshold)
+        self._lk = dict(winSize=(p.lk_window, p.lk_window), maxLevel=p.lk_levels,
+                        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        self._segment = 0
+        self._next_id = 0
+        self._prev_gray: np.ndarray | None = None
+        self._elapsed = dict.fromkeys((*STAGES, "total"), 0.0)
+        self._n_frames = self._n_keyframes = self._n_ba = 0
+        self._new_world()
+
+    # ---------------------------------------------------------------- public interface
+
+    def process(self, time: float, image_bgr: np.ndarray) -> VoOutput:
+        """Track the frame taken at ``time`` and return the VO output for it."""
+        t_start = _time.perf_counter()
+        gray = image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
+        if len(self._tracks) and self._prev_gray is not None:
+            uv, ok = self._track_lk(self._prev_gray, gray)
+            self._set_tracks(np.flatnonzero(ok), uv[ok])
+        else:
+            self._set_tracks(np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
+        self._prev_gray = gray
+        self._elapsed["track"] += _time.perf_counter() - t_start
+        out = self._step(time, lambda n: self._detect(gray, n))
+        self._elapsed["total"] += _time.perf_counter() - t_start
+        return out
+
+    def process_tracks(self, time: float, track_ids: np.ndarray, uv: np.ndarray) -> VoOutput:
+        """Same as ``process`` with an external front end: ``uv`` (distorted pixels) of feature
+        ``track_ids`` in this frame. Ids not yet known are taken as new features when the VO
+        wants some (reference frame, keyframes); known ids missing from the list are lost."""
+        t_start = _time.perf_counter()
+        track_ids = np.asarray(track_ids, np.int64)
+        uv = np.asarray(uv, np.float32).reshape(-1, 2)
+        row = {int(i): k for k, i in enumerate(self._tracks.id)}
+        known = np.array([int(i) in row for i in track_ids], bool)
+        self._set_tracks(np.array([row[int(i)] for i in track_ids[known]], np.int64), uv[known])
+        new_ids, new_uv = track_ids[~known], uv[~known]
+
+        def detect(n: int) -> tuple[np.ndarray, np.ndarray]:
+            return new_ids[:n], new_uv[:n]
+
+        out = self._step(time, detect)
+        self._elapsed["total"] += _time.perf_counter() - t_start
+        return out
+
+    def stats(self) -> dict:
+        """Average milliseconds per frame of each stage (and of the whole ``process``), the
+        average of one local BA, and frame / keyframe / BA counts."""
+        n = max(self._n_frames, 1)
+        out = {f"{s}_ms": 1e3 * self._elapsed[s] / n for s in (*STAGES, "total")}
+        out["ba_ms_per_call"] = 1e3 * self._elapsed["ba"] / max(self._n_ba, 1)
+        out.update(frames=self._n_frames, keyframes=self._n_keyframes, ba_calls=self._n_ba)
+        return out
+
+    # ------------------------------------------------------------------------ front end
+
+    def _undistort(self, uv: np.ndarray) -> np.ndarray:
+        if len(uv) == 0:
+            return np.zeros((0, 2))
+        pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        return cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
+
+    def _track_lk(self, prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p0 = self._tracks.uv.reshape(-1, 1, 2).astype(np.float32)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **self._lk)
+        # The backward pass tracks the found points back: a mistrack (occlusion, water glint,
+        # texture-less patch such as a black frame) rarely returns to where it started.
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **self._lk)
+        fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+        uv = p1.reshape(-1, 2)
+        w, h = self._size
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.params.fb_threshold_px) & inside
+        return uv, ok
+
+    def _detect(self, gray: np.ndarray, n_wanted: int) -> tuple[np.ndarray, np.ndarray]:
+        """New ORB corners, the strongest per cell of ``min_feature_distance_px``, none in a cell
+        already holding a track: spreads features over the image."""
+        t0 = _time.perf_counter()
+        keypoints = self._orb.detect(gray, None)
+        if not keypoints or n_wanted <= 0:
+            self._elapsed["detect"] += _time.perf_counter() - t0
+            return np.zeros(0, np.int64), np.zeros((0, 2), np.float32)
+        pts = cv2.KeyPoint_convert(keypoints).reshape(-1, 2)
+        response = np.array([k.response for k in keypoints])
+        cell = self.params.min_feature_distance_px
+        n_cols = int(np.ceil(self._size[0] / cell)) + 1
+
+        def cell_of(uv: np.ndarray) -> np.ndarray:
+            c = np.floor(uv / cell).astype(np.int64)
+            return c[:, 1] * n_cols + c[:, 0]
+
+        order = np.argsort(-response)
+        pts, cells = pts[order], cell_of(pts[order])
+        free = ~np.isin(cells, cell_of(self._tracks.uv))
+        pts, cells = pts[free], cells[free]
+        _, first = np.unique(cells, return_index=True)  # strongest corner of each cell
+        pts = pts[np.sort(first)][:n_wanted]
+        ids = np.arange(self._next_id, self._next_id + len(pts), dtype=np.int64)
+        self._next_id += len(pts)
+        self._elapsed["detect"] += _time.perf_counter() - t0
+        return ids, pts.astype(np.float32)
+
+    def _set_tracks(self, rows: np.ndarray, uv: np.ndarray) -> None:
+        """Keep the given rows of the track table with their new positions."""
+        tracks = self._tracks.select(rows)
+        tracks.uv = np.asarray(uv, np.float32).reshape(-1, 2)
+        tracks.xy = self._undistort(tracks.uv)
+        self._tracks = tracks
+
+    def _add_tracks(self, detect: Callable, anchor_kf: int, max_new: int) -> None:
+        ids, uv = detect(max_new)
+        if len(ids) == 0:
+            return
+        xy = self._undistort(uv)
+        self._tracks = self._tracks.extend(_Tracks(
+            np.asarray(ids, np.int64), np.asarray(uv, np.float32).reshape(-1, 2), xy,
+            np.full(len(ids), anchor_kf, np.int64), xy.copy(), xy.copy()))
+
+    # ------------------------------------------------------------------------- back end
+
+    def _new_world(self) -> None:
+        self._tracks = _Tracks()
+        self._keyframes: list[_Keyframe] = []
+        self._map = _Map()
+        self._reference_time: float | None = None
+        self._reference_count = 0
+        self._pose: tuple[np.ndarray, np.ndarray] | None = None
+        self._kf_inliers = 0
+        self._history: list[_Frame] = []
+        self._init_previous: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._init_count = 0
+        self._gauge = 1  # keyframe at unit distance from KF0 (the initialisation frame)
+
+    def _output(self, time: float, status: str, n_inliers: int = 0, is_keyframe: bool = False,
+                obs_rows: np.ndarray | None = None) -> VoOutput:
+        C = position = None
+        if status == "tracking" and self._pose is not None:
+            C = self._pose[0].copy()
+            position = -C.T @ self._pose[1]
+        rows = np.zeros(0, np.int64) if obs_rows is None else obs_rows
+        return VoOutput(
+            time=float(time), status=status, segment=self._segment, C_world_to_camera=C,
+            camera_position_world=position, n_tracked=len(self._tracks), n_inliers=int(n_inliers),
+            is_keyframe=is_keyframe, points_world=self._map.xyz.copy(),
+            point_ids=self._map.ids.copy(),
+            observations=(self._tracks.id[rows].copy(), self._tracks.uv[rows].astype(float)),
+            world_time=self._keyframes[0].time if self._keyframes else None)
+
+    def _step(self, time: float, detect: Callable) -> VoOutput:
+        self._n_frames += 1
+        if not self._keyframes:
+            out = self._initialise(time, detect)
+        else:
+            out = self._track(time, detect)
+        self._remember(time, out.status == "tracking")
+        return out
+
+    def _remember(self, time: float, with_pose: bool) -> None:
+        order = np.argsort(self._tracks.id)
+        frame = _Frame(time, self._tracks.id[order], self._tracks.xy[order])
+        if with_pose and self._pose is not None:
+            frame.C, frame.t = self._pose
+        self._history.append(frame)
+        del self._history[:-self.params.history_frames]
+
+    def _frames_between(self, t_from: float, t_to: float) -> list[_Frame]:
+        """Up to ``history_checks`` remembered frames strictly between two times, spread."""
+        frames = [f for f in self._history if t_from < f.time < t_to]
+        n = self.params.history_checks
+        if len(frames) > n:
+            frames = [frames[i] for i in np.linspace(0, len(frames) - 1, n).round().astype(int)]
+        return frames
+
+    def _track_consistent(self, ids: np.ndarray, X: np.ndarray, frames: list[_Frame]
+                          ) -> np.ndarray:
+        """Whether points X (W) reproject onto their tracks in every given frame with a pose:
+        water and boats can move along the epipolar line of two views, not of many."""
+        worst = np.zeros(len(ids))
+        for f in frames:
+            if f.C is None or len(f.ids) == 0:
+                continue
+            pos = np.clip(np.searchsorted(f.ids, ids), 0, len(f.ids) - 1)
+            hit = f.ids[pos] == ids
+            Xc = X[hit] @ f.C.T + f.t
+            with np.errstate(divide="ignore", invalid="ignore"):
+                err = np.linalg.norm(Xc[:, :2] / Xc[:, 2:] - f.xy[pos[hit]], axis=1)
+            err[~(Xc[:, 2] > 0)] = np.inf
+            worst[hit] = np.maximum(worst[hit], err)
+        return worst < 1.5 * self.params.max_reprojection_px / self._focal
+
+    def _rigid_between(self, time: float, threshold: float) -> np.ndarray:
+        """Tracks (since the reference) that are epipolar inliers of the pairs reference→m and
+        m→now for frames m at a third and two thirds of the way. Water drifting along the
+        epipolar lines of one pair rarely does for all, and such tracks would otherwise bend
+        the weakly conditioned first two-view geometry."""
+        tr = self._tracks
+        keep = np.ones(len(tr), bool)
+        frames = [f for f in self._history if self._reference_time < f.time < time]
+        if len(frames) < 3:
+            return keep
+        for f in (frames[len(frames) // 3], frames[2 * len(frames) // 3]):
+            pos = np.clip(np.searchsorted(f.ids, tr.id), 0, len(f.ids) - 1)
+            seen = f.ids[pos] == tr.id
+            xy_m = np.where(seen[:, None], f.xy[pos], np.nan)
+            for a, b in ((tr.anchor_xy, xy_m), (xy_m, tr.xy)):
+                m = keep & seen
+                if m.sum() < self.params.init_min_points:
+                    return np.zeros(len(tr), bool)
+                E, mask = cv2.findEssentialMat(a[m], b[m], np.eye(3), method=cv2.USAC_ACCURATE,
+                                               prob=0.999, threshold=threshold)
+                if E is None or mask is None:
+                    return np.zeros(len(tr), bool)
+                keep[np.flatnonzero(m)[mask.ravel() == 0]] = False
+            keep &= seen
+        return keep
+
+    @staticmethod
+    def _lookup(frame: _Frame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of ``ids`` in a frame's sorted ids and whether each is there."""
+        if len(frame.ids) == 0:
+            return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
+        pos = np.clip(np.searchsorted(frame.ids, ids), 0, len(frame.ids) - 1)
+        return pos, frame.ids[pos] == ids
+
+    def _pnp(self, X: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Pose (C_W^C, t^C) from map points and their normalised image points, or None."""
+        if len(X) < self.params.min_tracked:
+            return None
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X, xy, np.eye(3), None, iterationsCount=100,
+            reprojectionError=self.params.pnp_threshold_px / self._focal, confidence=0.999,
+            flags=cv2.SOLVEPNP_AP3P)
+        if not ok or inl is None or len(inl) < self.params.min_tracked:
+            return None
+        inl = inl.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(X[inl], xy[inl], np.eye(3), None, rvec, tvec)
+        return cv2.Rodrigues(rvec)[0], tvec.ravel()
+
+    def _best_first_map(self, rigid: np.ndarray, between: list[_Frame], now: _Frame,
+                        threshold: float) -> tuple[dict, np.ndarray, np.ndarray] | None:
+        """Choose the first two-view geometry among several (reference → a frame half-way,
+        two thirds of the way, this frame) by how well its map explains ALL the frames since
+        the reference (each located by PnP): truncated squared reprojection error summed over
+        the rigid tracks (MSAC over time). A distant quay under small parallax leaves several
+        two-view solutions of nearly equal epipolar cost; the wrong ones (translation off by
+        tens of degrees) do not fit the frames in between. Returns the poses of the frames
+        (by ``id``) and this frame's pose, or None."""
+        p = self.params
+        tr = self._tracks
+        frames = [*between, now]
+        tau = p.max_reprojection_px / self._focal
+        candidates = [now]
+        if len(between) >= 4:
+            candidates += [between[len(between) // 2], between[2 * len(between) // 3]]
+        rows = np.flatnonzero(rigid)
+        ids = tr.id[rows]
+        looks = [self._lookup(f, ids) for f in frames]
+        best, best_cost = None, np.inf
+        I3, z3 = np.eye(3), np.zeros(3)
+        for cand in candidates:
+            pos, seen = self._lookup(cand, ids)
+            model = relative_pose_normalised(tr.anchor_xy[rows[seen]], cand.xy[pos[seen]],
+                                             threshold)
+            if model is None:
+                continue
+            R, t, inl = model
+            sel = np.flatnonzero(seen)[inl]
+            X = triangulate(I3, z3, R, t, tr.anchor_xy[rows[sel]], cand.xy[pos[sel]])
+            front, err, _ = triangulation_quality(X, I3, z3, R, t, tr.anchor_xy[rows[sel]],
+                                                  cand.xy[pos[sel]])
+            ok = front & (err < tau)
+            sel, X = sel[ok], X[ok]
+            if len(sel) < p.init_min_points:
+                continue
+            cost, poses = 0.0, {}
+            for f, (fpos, fseen) in zip(frames, looks, strict=True):
+                in_map = np.zeros(len(ids), bool)
+                in_map[sel] = True
+                use = in_map & fseen
+                pose = self._pnp(X[np.searchsorted(sel, np.flatnonzero(use))],
+                                 f.xy[fpos[use]])
+                if pose is None:
+                    cost = np.inf
+                    break
+                poses[id(f)] = pose
+                e = np.full(len(ids), np.inf)
+                Xc = X[np.searchsorted(sel, np.flatnonzero(use))] @ pose[0].T + pose[1]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    e[use] = np.linalg.norm(Xc[:, :2] / Xc[:, 2:] - f.xy[fpos[use]], axis=1)
+                e[use & ~(np.isfinite(e))] = np.inf
+                cost += float(np.sum(np.minimum(e[fseen], tau) ** 2))
+            if cost < best_cost:
+                best, best_cost = (poses, *poses[id(now)]), cost
+        return best
+
+    def _lose(self, time: float, detect: Callable) -> VoOutput:
+        """Tracking lost: drop the world; this frame may already serve as the new reference."""
+        self._segment += 1
+        self._new_world()
+        self._start_reference(time, detect)
+        return self._output(time, "lost")
+
+    def _start_reference(self, time: float, detect: Callable) -> bool:
+        self._tracks = _Tracks()
+        self._history = []
+        self._init_previous = None
+        self._init_count = 0
+        self._add_tracks(detect, 0, self.params.n_features)
+        if len(self._tracks) < self.params.init_min_points:
+            self._tracks = _Tracks()
+            self._reference_time = None
+            return False
+        self._reference_time = time
+        self._reference_count = len(self._tracks)
+        return True
+
+    def _initialise(self, time: float, detect: Callable) -> VoOutput:
+        p = self.params
+        tr = self._tracks
+        if self._reference_time is None or len(tr) < max(p.init_min_points,
+                                                         0.5 * self._reference_count):
+            # No reference yet, or too many of its corners gone (turning): start again here.
+            ok = self._start_reference(time, detect)
+            return self._output(time, "initialising" if ok else "lost")
+        t0 = _time.perf_counter()
+        if np.median(np.linalg.norm(tr.xy - tr.anchor_xy, axis=1)) * self._focal < \
+                p.init_min_parallax_px:
+            return self._output(time, "initialising")
+        self._init_count += 1
+        if self._init_count % p.init_attempt_interval:
+            return self._output(time, "initialising")
+        thr = p.ransac_threshold_px / self._focal
+        rigid = self._rigid_between(time, thr)
+        if rigid.sum() < p.init_min_points:
+            return self._output(time, "initialising")
+        order = np.argsort(tr.id)
+        now = _Frame(time, tr.id[order], tr.xy[order])
+        between = self._frames_between(self._reference_time, time)
+        prev = self._init_previous
+        f_prev = next((f for f in self._history if prev is not None and f.time == prev[0]), None)
+        if f_prev is not None and all(f is not f_prev for f in between):
+            between = sorted([*between, f_prev], key=lambda f: f.time)
+        best = self._best_first_map(rigid, between, now, thr)
+        self._elapsed["pose"] += _time.perf_counter() - t0
+        if best is None:
+            self._init_previous = None
+            return self._output(time, "initialising")
+        poses, R, t = best
+        # Accept only a geometry that the previous attempt found too (same pose of the previous
+        # frame up to scale): the wrong two-view solutions come and go from frame to frame, and
+        # their sideways translation even inflates the parallax that gates the initialisation.
+        self._init_previous = (time, R, t)
+        if f_prev is None or id(f_prev) not in poses or \
+                not _same_pose_direction(poses[id(f_prev)], prev[1:], p):
+            return self._output(time, "initialising")
+        t1 = _time.perf_counter()
+        I3, z3 = np.eye(3), np.zeros(3)
+        X = triangulate(I3, z3, R, t, tr.anchor_xy, tr.xy)
+        _, err, angle = triangulation_quality(X, I3, z3, R, t, tr.anchor_xy, tr.xy)
+        good = rigid & (err < p.max_reprojection_px / self._focal) & \
+            (angle > np.radians(p.min_triangulation_angle_deg))
+        if good.sum() < p.init_min_points or \
+                np.degrees(np.median(angle[good])) < p.init_min_angle_deg:
+            self._elapsed["triangulate"] += _time.perf_counter() - t1
+            return self._output(time, "initialising")
+        # Points must follow their tracks in the frames in between too.
+        for f in between:
+            f.C, f.t = poses.get(id(f), (None, None))
+        good[good] = self._track_consistent(tr.id[good], X[good], between)
+        self._elapsed["triangulate"] += _time.perf_counter() - t1
+        if good.sum() < p.init_min_points:
+            for f in between:
+                f.C = f.t = None
+            return self._output(time, "initialising")
+        for f in self._history:
+            if f.time == self._reference_time:
+                f.C, f.t = I3.copy(), z3.copy()
+
+        # The world: reference = KF0 = W; a few located frames in between and this frame become
+        # keyframes too, so the first BA sees the map from several views, not two.
+        kf0 = _Keyframe(0, self._reference_time, I3.copy(), z3.copy())
+        kf0.add(tr.id[good], tr.anchor_xy[good])
+        self._keyframes = [kf0]
+        located = [f for f in between if f.C is not None]
+        n_mid = min(p.init_views - 2, len(located))
+        for i in np.linspace(0, len(located) - 1, n_mid + 2)[1:-1].round().astype(int):
+            f = located[i]
+            kf = _Keyframe(len(self._keyframes), f.time, f.C, f.t)
+            pos, seen = self._lookup(f, tr.id[good])
+            kf.add(tr.id[good][seen], f.xy[pos[seen]])
+            self._keyframes.append(kf)
+        kf1 = _Keyframe(len(self._keyframes), time, R, t)
+        kf1.add(tr.id[good], tr.xy[good])
+        self._keyframes.append(kf1)
+        self._gauge = kf1.serial
+        self._n_keyframes += len(self._keyframes)
+        self._map.add(tr.id[good], X[good])
+        self._tracks = tr.select(np.flatnonzero(rigid))  # the others do not move with the port
+        self._pose = (R, t)
+        self._local_ba()
+        self._pose = (kf1.C, kf1.t)
+        rows = np.flatnonzero(self._map.lookup(self._tracks.id) >= 0)
+        self._kf_inliers = len(rows)
+        self._finish_keyframe(detect, kf1.serial)
+        return self._output(time, "tracking", len(rows), True, rows)
+
+    def _track(self, time: float, detect: Callable) -> VoOutput:
+        p = self.params
+        t0 = _time.perf_counter()
+        tr = self._tracks
+        row = self._map.lookup(tr.id)
+        mapped = np.flatnonzero(row >= 0)
+        if len(mapped) < p.min_tracked:
+            return self._lose(time, detect)
+        obj = self._map.xyz[row[mapped]]
+        img = tr.xy[mapped]
+        thr = p.pnp_threshold_px / self._focal
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, np.eye(3), None, iterationsCount=100,
+                                                 reprojectionError=thr, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_AP3P)
+        if not ok or inl is None or len(inl) < p.min_tracked:
+            return self._lose(time, detect)
+        inl = inl.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], np.eye(3), None, rvec, tvec)
+        C = cv2.Rodrigues(rvec)[0]
+        t = tvec.ravel()
+        Xc = obj @ C.T + t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.linalg.norm(Xc[:, :2] / Xc[:, 2:] - img, axis=1)
+        good = (Xc[:, 2] > 0) & (err < thr)
+        if good.sum() < p.min_tracked:
+            return self._lose(time, detect)
+        # Map points off their reprojection move with the water / a boat, or were mistracked.
+        keep = np.ones(len(tr), bool)
+        keep[mapped[~good]] = False
+        self._pose = (C, t)
+        self._elapsed["pose"] += _time.perf_counter() - t0
+
+        n_inliers = int(good.sum())
+        kf = self._keyframes[-1]
+        depth = float(np.median(Xc[good, 2]))
+        baseline = np.linalg.norm(-C.T @ t - kf.centre)
+        parallax = np.median(np.linalg.norm(tr.xy - tr.kf_xy, axis=1)) * self._focal
+        is_kf = (baseline > p.keyframe_baseline_ratio * depth
+                 or parallax > p.keyframe_parallax_px
+                 or n_inliers < p.keyframe_track_ratio * self._kf_inliers
+                 or len(tr) < 0.5 * p.n_features
+                 or time - kf.time > p.keyframe_max_interval_s)
+        self._tracks = tr.select(np.flatnonzero(keep))
+        if is_kf:
+            self._make_keyframe(time, depth, detect)
+        rows = np.flatnonzero(self._map.lookup(self._tracks.id) >= 0)
+        if is_kf:
+            self._kf_inliers = len(rows)
+        return self._output(time, "tracking", n_inliers if not is_kf else len(rows), is_kf, rows)
+
+    def _make_keyframe(self, time: float, depth: float, detect: Callable) -> None:
+        p = self.params
+        C, t = self._pose
+        serial = len(self._keyframes)
+        kf = _Keyframe(serial, time, C, t)
+        tr = self._tracks
+        row = self._map.lookup(tr.id)
+        mapped = row >= 0
+        kf.add(tr.id[mapped], tr.xy[mapped])
+        self._keyframes.append(kf)
+        self._n_keyframes += 1
+
+        # New points: candidates triangulated between their first keyframe and this one.
+        t0 = _time.perf_counter()
+        drop = np.zeros(len(tr), bool)
+        max_err = p.max_reprojection_px / self._focal
+        min_angle = np.radians(p.min_triangulation_angle_deg)
+        for a in np.unique(tr.anchor_kf[~mapped]):
+            idx = np.flatnonzero(~mapped & (tr.anchor_kf == a))
+            anchor = self._keyframes[a]
+            X = triangulate(anchor.C, anchor.t, C, t, tr.anchor_xy[idx], tr.xy[idx])
+            front, err, angle = triangulation_quality(X, anchor.C, anchor.t, C, t,
+                                                      tr.anchor_xy[idx], tr.xy[idx])
+            good = front & (err < max_err) & (angle > min_angle)
+            if good.any():
+                moving = ~self._track_consistent(tr.id[idx[good]], X[good],
+                                                 self._frames_between(anchor.time, time))
+                drop[idx[good][moving]] = True
+                good[good] = ~moving
+            # With a real baseline a track off its epipolar geometry is not on the rigid port.
+            if np.linalg.norm(anchor.centre - kf.centre) > 0.5 * p.keyframe_baseline_ratio * depth:
+                drop[idx[err > 2.0 * max_err]] = True
+            if good.any():
+                anchor.add(tr.id[idx[good]], tr.anchor_xy[idx[good]])
+                kf.add(tr.id[idx[good]], tr.xy[idx[good]])
+                self._map.add(tr.id[idx[good]], X[good])
+        self._tracks = tr.select(np.flatnonzero(~drop))
+        self._elapsed["triangulate"] += _time.perf_counter() - t0
+
+        self._local_ba()
+        kf = self._keyframes[-1]
+        self._pose = (kf.C, kf.t)
+        # The local map: points seen by the BA window or still tracked.
+        seen = np.concatenate([k.obs_ids for k in self._keyframes[-p.ba_window:]]
+                              + [self._tracks.id])
+        self._map.keep(np.isin(self._map.ids, seen))
+        self._finish_keyframe(detect, serial)
+
+    def _finish_keyframe(self, detect: Callable, serial: int) -> None:
+        """Top the tracks up with new corners anchored at this keyframe."""
+        self._tracks.kf_xy = self._tracks.xy.copy()
+        missing = self.params.n_features - len(self._tracks)
+        if missing > 0.1 * self.params.n_features:
+            self._add_tracks(detect, serial, missing)
+
+    def _local_ba(self) -> None:
+        """Bundle adjustment of the last ``ba_window`` keyframes and of the points they see.
+
+        While the window still holds KF0 only KF0 is fixed (it is W) and the scale is reset to
+        a unit first baseline afterwards: the initial two-view geometry of a distant quay seen
+        under a small parallax is ill-conditioned (translation direction off by several degrees
+        at equal epipolar cost), and the next keyframes resolve it. Later the oldest two
+        keyframes of the window are fixed, which holds the gauge and the scale."""
+        p = self.params
+        t0 = _time.perf_counter()
+        kfs = self._keyframes
+        window = kfs[-p.ba_window:]
+        early = window[0].serial == 0
+        free = window[1:] if early else window[2:]
+        free_serials = {k.serial for k in free}
+        point_ids = np.unique(np.concatenate([k.obs_ids for k in free]))
+        point_ids = point_ids[self._map.lookup(point_ids) >= 0]
+        if len(point_ids) == 0:
+            return
+        used = kfs[-3 * p.ba_window:]
+        cam_idx, pt_idx, xy = [], [], []
+        for j, k in enumerate(used):
+            pos = np.clip(np.searchsorted(point_ids, k.obs_ids), 0, len(point_ids) - 1)
+            hit = point_ids[pos] == k.obs_ids
+            cam_idx.append(np.full(hit.sum(), j))
+            pt_idx.append(pos[hit])
+            xy.append(k.obs_xy[hit])
+        rows = self._map.lookup(point_ids)
+        C, t, X, res = bundle_adjust(
+            np.array([k.C for k in used]), np.array([k.t for k in used]), self._map.xyz[rows],
+            np.concatenate(cam_idx), np.concatenate(pt_idx), np.concatenate(xy),
+            np.array([k.serial not in free_serials for k in used]), self._focal,
+            p.ba_huber_px, p.ba_max_nfev)
+        for j, k in enumerate(used):
+            k.C, k.t = C[j], t[j]
+        self._map.xyz[rows] = X
+        if early:  # the segment's gauge: reference → initialisation frame = 1
+            s = 1.0 / np.linalg.norm(kfs[self._gauge].centre)
+            for k in kfs:
+                k.t = k.t * s
+            for f in self._history:
+                if f.t is not None:
+                    f.t = f.t * s
+            self._map.xyz = self._map.xyz * s
+        # A point behind a camera gets a huge residual (depth clamped), so this also culls it.
+        bad_pt = np.unique(np.concatenate(pt_idx)[res > p.ba_outlier_px])
+        if len(bad_pt):
+            bad_ids = point_ids[bad_pt]
+            self._map.keep(~np.isin(self._map.ids, bad_ids))
+            self._tracks = self._tracks.select(np.flatnonzero(~np.isin(self._tracks.id, bad_ids)))
+        self._n_ba += 1
+        self._elapsed["ba"] += _time.perf_counter() - t0

@@ -1,0 +1,349 @@
+"""Tests of the VO block (estimator/vo.py).
+
+a) geometry on projected synthetic points (ORB needs texture, so the pipeline is fed point
+   tracks through ``process_tracks``); b) the full image pipeline on a short rendered sequence
+   of the small-boat scenario (skipped while the simulator's renderer is not available).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from estimator.frames import camera_to_body, dcm_to_rotvec, euler_to_dcm, rotvec_to_dcm
+from estimator.records import CameraCalibration
+from estimator.vo import (
+    VisualOdometry,
+    bundle_adjust,
+    relative_pose,
+    triangulate,
+    triangulation_quality,
+    umeyama_alignment,
+)
+
+K = np.array([[680.0, 0.0, 480.0], [0.0, 680.0, 300.0], [0.0, 0.0, 1.0]])
+DIST = np.array([-0.12, 0.05, 0.0005, -0.0003, 0.0])
+CAMERA = CameraCalibration(960, 600, K, DIST, camera_to_body(0.0, np.radians(3.0)),
+                           np.array([3.0, 0.0, -0.4]))
+
+
+def angle_deg(C: np.ndarray) -> float:
+    return float(np.degrees(np.linalg.norm(dcm_to_rotvec(C))))
+
+
+def direction_error_deg(a: np.ndarray, b: np.ndarray) -> float:
+    c = np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+# ------------------------------------------------------------------------- synthetic world
+
+
+def marina_points(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
+    """Points (NED) on structures 10–80 m ahead of a camera starting near the origin."""
+    return np.column_stack([rng.uniform(10.0, 80.0, n), rng.uniform(-45.0, 45.0, n),
+                            rng.uniform(-8.0, 0.0, n)])
+
+
+def camera_path(n: int, speed: float = 1.0, yaw_rate_deg: float = 0.0, dt: float = 0.1
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(C_level_to_camera, camera position NED) of a boat going north with wave roll/pitch."""
+    out = []
+    for k in range(n):
+        t = k * dt
+        C_b_l = euler_to_dcm(np.radians(2.0) * np.sin(1.8 * t), np.radians(1.0) * np.sin(1.1 * t),
+                             np.radians(yaw_rate_deg) * t)
+        position = np.array([speed * t, 0.0, -1.0 + 0.03 * np.sin(1.8 * t)])
+        out.append(((C_b_l @ CAMERA.C_camera_to_body).T, position))
+    return out
+
+
+def project(X: np.ndarray, C_l_c: np.ndarray, position: np.ndarray, noise_px: float,
+            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Ids and distorted pixels of the points visible in the 960x600 image."""
+    depth = (X - position) @ C_l_c[2]
+    uv, _ = cv2.projectPoints(X, cv2.Rodrigues(C_l_c)[0], -C_l_c @ position, K, DIST)
+    uv = uv.reshape(-1, 2) + rng.normal(0.0, noise_px, (len(X), 2))
+    visible = (depth > 1.0) & (uv[:, 0] > 2) & (uv[:, 0] < 957) & (uv[:, 1] > 2) & (uv[:, 1] < 597)
+    return np.flatnonzero(visible), uv[visible]
+
+
+def run_tracks(vo: VisualOdometry, X: np.ndarray, path, noise_px: float, seed: int,
+               moving: np.ndarray | None = None, blank: range = range(0)):
+    rng = np.random.default_rng(seed)
+    outs, truth = [], []
+    for k, (C, position) in enumerate(path):
+        Xk = X.copy()
+        if moving is not None:  # "water": drift with the current (0.5 m/s) and the waves
+            phase = 0.7 * k + moving
+            Xk[moving] += np.column_stack([0.2 * np.sin(phase), 0.05 * k + 0.2 * np.cos(phase),
+                                           0.1 * np.sin(1.3 * phase)])
+        ids, uv = project(Xk, C, position, noise_px, rng)
+        if k in blank:
+            ids, uv = ids[:0], uv[:0]
+        outs.append(vo.process_tracks(0.1 * k, ids, uv))
+        truth.append((C, position))
+    return outs, truth
+
+
+def trajectory_residual(outs, truth, segment: int | None = None) -> tuple[float, float]:
+    """Largest residual after a similarity alignment, as a share of the path length, and the
+    path length (truth) of the tracked frames."""
+    keep = [i for i, o in enumerate(outs)
+            if o.status == "tracking" and (segment is None or o.segment == segment)]
+    est = np.array([outs[i].camera_position_world for i in keep])
+    tru = np.array([truth[i][1] for i in keep])
+    s, R, t = umeyama_alignment(est, tru)
+    residual = np.linalg.norm(tru - (s * est @ R.T + t), axis=1)
+    length = float(np.sum(np.linalg.norm(np.diff(tru, axis=0), axis=1)))
+    return float(residual.max() / length), length
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_relative_pose_recovers_rotation_and_translation_direction():
+    rng = np.random.default_rng(1)
+    X = np.column_stack([rng.uniform(-20, 20, 300), rng.uniform(-5, 5, 300),
+                         rng.uniform(8, 60, 300)])
+    R_true = rotvec_to_dcm(np.radians([1.0, 4.0, -0.5]))
+    t_true = np.array([0.2, 0.05, -1.0])
+    pts0 = X[:, :2] / X[:, 2:] * 680.0 + [480.0, 300.0]
+    Xc1 = X @ R_true.T + t_true
+    pts1 = Xc1[:, :2] / Xc1[:, 2:] * 680.0 + [480.0, 300.0]
+    pts0 += rng.normal(0, 0.2, pts0.shape)
+    pts1 += rng.normal(0, 0.2, pts1.shape)
+    outliers = rng.choice(300, 30, replace=False)  # mismatches / moving water
+    pts1[outliers] += rng.uniform(-30, 30, (30, 2))
+    R, t, inliers = relative_pose(pts0, pts1, K)
+    assert angle_deg(R @ R_true.T) < 0.1
+    assert direction_error_deg(t, t_true) < 1.0
+    assert abs(np.linalg.norm(t) - 1.0) < 1e-9
+    assert inliers[outliers].mean() < 0.2
+    assert inliers[np.setdiff1d(np.arange(300), outliers)].mean() > 0.9
+
+
+def test_triangulation_and_cheirality():
+    rng = np.random.default_rng(2)
+    X = np.column_stack([rng.uniform(-5, 5, 50), rng.uniform(-2, 2, 50), rng.uniform(5, 30, 50)])
+    C0, t0 = np.eye(3), np.zeros(3)
+    C1 = rotvec_to_dcm(np.array([0.0, 0.05, 0.0]))
+    t1 = -C1 @ np.array([1.0, 0.0, 0.2])  # centre of camera 1 at (1, 0, 0.2)
+
+    def xy(C, t, P):
+        Pc = P @ C.T + t
+        return Pc[:, :2] / Pc[:, 2:]
+
+    Xt = triangulate(C0, t0, C1, t1, xy(C0, t0, X), xy(C1, t1, X))
+    assert np.allclose(Xt, X, atol=1e-6)
+    front, err, angle = triangulation_quality(Xt, C0, t0, C1, t1, xy(C0, t0, X), xy(C1, t1, X))
+    assert front.all() and err.max() < 1e-9
+    rays0, rays1 = X, X - np.array([1.0, 0.0, 0.2])
+    cos = np.sum(rays0 * rays1, 1) / np.linalg.norm(rays0, axis=1) / np.linalg.norm(rays1, axis=1)
+    assert np.allclose(angle, np.arccos(cos), atol=1e-9)
+    behind = -X  # same image points, but behind both cameras' centres
+    front_b, _, _ = triangulation_quality(behind, C0, t0, C1, t1, xy(C0, t0, X), xy(C1, t1, X))
+    assert not front_b.any()
+
+
+def test_umeyama_alignment_recovers_similarity():
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(40, 3))
+    R = rotvec_to_dcm(np.array([0.3, -1.0, 2.0]))
+    dst = 2.5 * src @ R.T + np.array([1.0, -2.0, 3.0])
+    s, R_est, t = umeyama_alignment(src, dst)
+    assert s == pytest.approx(2.5)
+    assert np.allclose(R_est, R) and np.allclose(t, [1.0, -2.0, 3.0])
+
+
+def test_bundle_adjust_converges_from_perturbed_poses_and_points():
+    rng = np.random.default_rng(4)
+    X = np.column_stack([rng.uniform(-10, 10, 200), rng.uniform(-3, 3, 200),
+                         rng.uniform(10, 40, 200)])
+    n_cam = 5
+    C = np.array([rotvec_to_dcm(np.array([0.0, 0.03 * k, 0.01 * k])) for k in range(n_cam)])
+    centres = np.array([[0.3 * k, 0.0, 1.0 * k] for k in range(n_cam)])
+    t = -np.einsum("kij,kj->ki", C, centres)
+    cam_idx, pt_idx, xy = [], [], []
+    for k in range(n_cam):
+        Xc = X @ C[k].T + t[k]
+        cam_idx.append(np.full(len(X), k))
+        pt_idx.append(np.arange(len(X)))
+        xy.append(Xc[:, :2] / Xc[:, 2:])
+    cam_idx, pt_idx, xy = map(np.concatenate, (cam_idx, pt_idx, xy))
+    fixed = np.array([True, True, False, False, False])
+    C_init = C.copy()
+    for k in range(2, n_cam):
+        C_init[k] = rotvec_to_dcm(rng.normal(0, 0.003, 3)) @ C[k]
+    t_init = t + np.where(fixed[:, None], 0.0, rng.normal(0, 0.05, t.shape))
+    X_init = X * rng.uniform(0.97, 1.03, (len(X), 1))
+    C_ba, t_ba, X_ba, res = bundle_adjust(C_init, t_init, X_init, cam_idx, pt_idx, xy, fixed,
+                                          680.0, 1.0, 30)
+    for k in range(n_cam):
+        assert angle_deg(C_ba[k] @ C[k].T) < 1e-5
+        assert np.linalg.norm(-C_ba[k].T @ t_ba[k] - centres[k]) < 1e-5
+    assert np.abs(X_ba - X).max() < 1e-4
+    assert res.max() < 1e-4
+    assert np.array_equal(C_ba[:2], C_init[:2])
+    # A gross outlier (a mistracked point) keeps a large residual instead of spreading.
+    xy[5] += 0.05
+    *_, res = bundle_adjust(C_init, t_init, X_init, cam_idx, pt_idx, xy, fixed, 680.0, 1.0, 30)
+    assert res[5] > 20.0 and np.median(res) < 0.05
+
+
+# ---------------------------------------------------------------- pipeline on point tracks
+
+
+def test_tracks_straight_path_scale_consistent():
+    """Straight path: after initialisation 20 tracked frames lie on the true path up to one
+    similarity (the scale of the first baseline is kept by the fixed keyframes)."""
+    X = marina_points(np.random.default_rng(5))
+    vo = VisualOdometry(CAMERA)
+    path = camera_path(60)
+    outs, truth = run_tracks(vo, X, path, 0.2, 5)
+    first = next(i for i, o in enumerate(outs) if o.status == "tracking")
+    assert first < 25
+    outs, truth = outs[first:first + 20], truth[first:first + 20]
+    assert all(o.status == "tracking" and o.segment == 0 for o in outs)
+    share, _ = trajectory_residual(outs, truth)
+    assert share < 0.01
+    # Attitude relative to W (= camera at the reference frame) matches the truth.
+    C_ref = path[0][0]  # the reference frame is the first one here
+    for o, (C_true, _) in zip(outs, truth, strict=True):
+        assert angle_deg(o.C_world_to_camera @ (C_true @ C_ref.T).T) < 0.2
+    # Unit first baseline: the initialisation frame (a keyframe) lies at distance 1 from W.
+    assert outs[0].is_keyframe
+    assert np.linalg.norm(outs[0].camera_position_world) == pytest.approx(1.0, abs=1e-9)
+    assert len(outs[-1].point_ids) == len(np.unique(outs[-1].point_ids)) > 100
+
+
+def test_tracks_turning_relative_rotation_and_direction():
+    X = marina_points(np.random.default_rng(6))
+    vo = VisualOdometry(CAMERA)
+    outs, truth = run_tracks(vo, X, camera_path(60, yaw_rate_deg=8.0), 0.2, 6)
+    tracked = [i for i, o in enumerate(outs) if o.status == "tracking"]
+    assert len(tracked) > 35
+    for i, j in zip(tracked[:-1], tracked[1:], strict=True):
+        rel = outs[j].C_world_to_camera @ outs[i].C_world_to_camera.T
+        rel_true = truth[j][0] @ truth[i][0].T
+        assert angle_deg(rel @ rel_true.T) < 0.1
+    share, _ = trajectory_residual(outs, truth)
+    assert share < 0.02
+
+
+def test_tracks_reject_moving_points():
+    """A third of the points drift like water: RANSAC and the triangulation checks keep them
+    out of the map and the trajectory stays on the truth."""
+    rng = np.random.default_rng(7)
+    X = marina_points(rng)
+    moving = rng.choice(len(X), len(X) // 3, replace=False)
+    vo = VisualOdometry(CAMERA)
+    outs, truth = run_tracks(vo, X, camera_path(50), 0.2, 7, moving=moving)
+    assert sum(o.status == "tracking" for o in outs) > 25
+    ids = np.unique(np.concatenate([o.point_ids for o in outs]))
+    assert np.isin(ids, moving).mean() < 0.03
+    share, _ = trajectory_residual(outs, truth)
+    assert share < 0.02
+
+
+def test_tracks_gap_starts_new_segment():
+    X = marina_points(np.random.default_rng(8))
+    vo = VisualOdometry(CAMERA)
+    outs, truth = run_tracks(vo, X, camera_path(90), 0.2, 8, blank=range(35, 40))
+    status = [o.status for o in outs]
+    assert status[34] == "tracking" and status[35] == "lost"
+    assert outs[34].segment == 0
+    assert all(o.C_world_to_camera is None for o in outs[35:40])
+    after = [o for o in outs[40:] if o.status == "tracking"]
+    assert len(after) > 20 and all(o.segment == 1 for o in after)
+    assert after[-1].status == "tracking"
+    for seg in (0, 1):
+        share, _ = trajectory_residual(outs, truth, seg)
+        assert share < 0.02
+
+
+# ------------------------------------------------------------------ rendered small-boat run
+
+RENDER_START_S = 45.0  # ~27 m from the quay at ~0.9 m/s: parallax for a prompt initialisation
+N_CLEAN = 60  # clean frames, then a black gap, then the VO must start a new segment
+GAP = range(60, 63)
+N_RENDERED = 95
+
+
+@pytest.fixture(scope="module")
+def rendered_run():
+    scene_mod = pytest.importorskip("recordings.sim.scene")
+    motion_mod = pytest.importorskip("recordings.sim.motion")
+    from recordings.sim.scenarios import SCENARIOS
+
+    scenario = SCENARIOS["small-boat"]
+    scene = scene_mod.PortScene.build(scenario, 3)
+    motion = motion_mod.ShipMotion(scenario, 3)
+    camera = scene_mod.camera_calibration(scenario)
+    rng = np.random.default_rng(3)
+    vo = VisualOdometry(camera)
+    outs, truth, frames = [], [], {}
+    for k in range(N_RENDERED):
+        t = RENDER_START_S + 0.1 * k
+        C_b_l = np.asarray(motion.state(t).C_body_to_level).reshape(-1, 3, 3)[0]
+        position = np.asarray(motion.point_position_ned(t, camera.lever_arm_body)).reshape(3)
+        C_l_c = (C_b_l @ camera.C_camera_to_body).T
+        if k in GAP:
+            image = np.zeros((camera.height, camera.width, 3), np.uint8)
+        else:
+            image = scene.render(C_l_c, position, t, camera, rng)
+        if k == N_CLEAN - 1:
+            frames["last_clean"] = image
+        outs.append(vo.process(scenario.start_gpst + t, image))
+        truth.append((C_l_c, position))
+    return outs, truth, vo, frames
+
+
+def test_rendered_sequence_tracks_truth(rendered_run):
+    outs, truth, vo, _ = rendered_run
+    clean = outs[:N_CLEAN]
+    tracked = [i for i, o in enumerate(clean) if o.status == "tracking"]
+    assert tracked and tracked[0] < 30, [o.status for o in clean]
+    # Once initialised, tracking is never lost on this clean sequence.
+    assert tracked == list(range(tracked[0], N_CLEAN))
+    assert all(o.segment == 0 for o in clean)
+    for i, j in zip(tracked[:-1], tracked[1:], strict=True):
+        rel = clean[j].C_world_to_camera @ clean[i].C_world_to_camera.T
+        rel_true = truth[j][0] @ truth[i][0].T
+        assert angle_deg(rel @ rel_true.T) < 0.3
+    # W is the camera at the reference frame the initialisation started from (world_time).
+    t0 = clean[0].time
+    w = int(round((clean[-1].world_time - t0) / 0.1))
+    assert 0 <= w < tracked[0] and clean[-1].world_time == pytest.approx(t0 + 0.1 * w)
+    for k in tracked:
+        assert angle_deg(clean[k].C_world_to_camera @ (truth[k][0] @ truth[w][0].T).T) < 1.0
+    i, j = tracked[0], tracked[-1]
+    moved = clean[i].C_world_to_camera @ (clean[j].camera_position_world
+                                          - clean[i].camera_position_world)
+    assert direction_error_deg(moved, truth[i][0] @ (truth[j][1] - truth[i][1])) < 3.0
+    share, length = trajectory_residual(clean, truth[:N_CLEAN])
+    assert length > 2.0 and share < 0.02
+    # The API: the frame's observations are map points, in pixels inside the image.
+    o = clean[-1]
+    ids, uv = o.observations
+    assert len(ids) >= vo.params.min_tracked and np.isin(ids, o.point_ids).all()
+    assert (uv >= 0).all() and (uv[:, 0] < 960).all() and (uv[:, 1] < 600).all()
+    assert o.points_world.shape == (len(o.point_ids), 3)
+
+
+def test_rendered_blank_gap_starts_new_segment(rendered_run):
+    outs, truth, _, _ = rendered_run
+    assert outs[GAP[0]].status == "lost"
+    assert all(outs[k].status != "tracking" and outs[k].C_world_to_camera is None for k in GAP)
+    after = outs[GAP[-1] + 1:]
+    resumed = [k for k, o in enumerate(after) if o.status == "tracking"]
+    assert resumed, [o.status for o in after]
+    assert resumed == list(range(resumed[0], len(after)))  # and keeps tracking
+    assert all(after[k].segment == 1 for k in resumed)
+    assert after[resumed[0]].world_time > outs[GAP[-1]].time
+    for i, j in zip(resumed[:-1], resumed[1:], strict=True):
+        rel = after[j].C_world_to_camera @ after[i].C_world_to_camera.T
+        k0 = GAP[-1] + 1
+        rel_true = truth[k0 + j][0] @ truth[k0 + i][0].T
+        assert angle_deg(rel @ rel_true.T) < 0.3
