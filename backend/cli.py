@@ -8,8 +8,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
+
+# The estimator's matrices are small (~40 states): a multi-threaded BLAS costs far more in
+# thread hand-offs than it gains, and starves the VO on a 2-core machine. Set before numpy loads.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 DEFAULT_RECORDING = Path(__file__).resolve().parent.parent / "recordings" / "default"
 
@@ -35,6 +40,32 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from backend.app import Settings, create_app
+
+    recording = _recording_arg(args.recording).resolve()
+    if not (recording / "manifest.json").is_file():
+        hint = ("make one with: berthing-aid simulate --scenario small-boat --seed 1 --out DIR"
+                if args.recording is None else "give a recording directory")
+        raise ValueError(f"{recording}: no recording there (no manifest.json); {hint}")
+    recordings_dir = Path(args.recordings_dir) if args.recordings_dir else None
+    if recordings_dir is not None and not recordings_dir.is_dir():
+        raise ValueError(f"--recordings-dir {recordings_dir}: not a directory")
+    settings = Settings(recordings_dir=recordings_dir, default_recording=recording,
+                        viser_host=args.host, viser_port=None if args.no_viewer
+                        else args.viser_port, announce=True)
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"warning: listening on {args.host}: anyone who reaches this machine can open "
+              "and control sessions", file=sys.stderr)
+    shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
+    print(f"berthing aid: http://{shown}:{args.port}/  (API docs http://{shown}:{args.port}"
+          f"/docs), recording {recording}", flush=True)
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="warning")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="berthing-aid", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -51,6 +82,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("recording", nargs="?", help="recording directory (default: bundled)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("serve", help="web server: replay sessions, stream, API, 3-D viewer")
+    p.add_argument("recording", nargs="?", help="default recording (default: bundled)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback)")
+    p.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
+    p.add_argument("--viser-port", type=int, default=8080,
+                   help="3-D viewer port (default 8080; 0: any free port)")
+    p.add_argument("--no-viewer", action="store_true", help="do not start the 3-D viewer")
+    p.add_argument("--recordings-dir", default=None,
+                   help="directory whose recordings (sub-directories) can be replayed too")
+    p.set_defaults(func=cmd_serve)
+
+    from backend.reports.baseline import add_baseline_parser
+    from backend.reports.compass import add_compass_parser
+    from backend.reports.replay import add_replay_parser
+
+    add_baseline_parser(sub)
+    add_compass_parser(sub)
+    add_replay_parser(sub)
     return parser
 
 

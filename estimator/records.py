@@ -148,3 +148,6 @@ class Hull:
     beam: float
     # Berth line: two points (north, east) in the reference local-level frame, when known.
     berth_line_ned: np.ndarray | None = None
+    # Height of the body origin (IMU) above the waterline, an installation constant: it puts
+    # the water plane of the overlay under the ship.
+    body_origin_height_m: float | None = None

@@ -491,7 +491,10 @@ def _parse_hull(path: Path) -> Hull:
         raise RecordingError(f"{path}: length and beam must be positive")
     berth = data.get("berth_line_ned")
     berth_line = None if berth is None else _array(path, berth, "berth_line_ned", (2, 2))
-    return Hull(outline_body=outline, length=length, beam=beam, berth_line_ned=berth_line)
+    height = data.get("body_origin_height_m")
+    height = None if height is None else _number(path, height, "body_origin_height_m")
+    return Hull(outline_body=outline, length=length, beam=beam, berth_line_ned=berth_line,
+                body_origin_height_m=height)
 
 
 # -------------------------------------------------------------------------------- CSV
@@ -995,6 +998,7 @@ def write_hull(directory: str | Path, hull: Hull) -> Path:
         "length": float(hull.length),
         "beam": float(hull.beam),
         "berth_line_ned": None if hull.berth_line_ned is None else _list(hull.berth_line_ned),
+        "body_origin_height_m": hull.body_origin_height_m,
     }
     return _write_json(Path(directory) / HULL_FILE, data)
 

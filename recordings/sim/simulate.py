@@ -114,7 +114,7 @@ def simulate(
     fmt.write_calibration(out, Calibration(camera=camera, antennas_body=antennas, imu=imu_cal))
     berth = np.array([[0.0, scenario.quay_east_range[0]], [0.0, scenario.quay_east_range[1]]])
     fmt.write_hull(out, Hull(scenario.hull_outline(), scenario.hull_length_m, scenario.hull_beam_m,
-                             berth))
+                             berth, body_origin_height_m=-scenario.reference_point_down_m))
 
     ref_t = imu.time
     state = motion.state(ref_t - start)

@@ -1,0 +1,463 @@
+"""Replay of a recording through a fusion engine, exactly as a live feed would deliver it.
+
+``sensor_messages`` merges the recording's streams into one time-ordered sequence of sensor
+messages: IMU samples, GNSS epochs of the four receivers grouped by their (common-clock) time
+tag, and video frames. At equal time tags IMU comes first, then GNSS, then the frame: the
+engine has propagated to ``t`` before it sees a measurement taken at ``t``, as with a live
+feed where the 100 Hz IMU has the smallest latency.
+
+``Replayer`` runs the engine on those messages in a background thread (the numerics are
+CPU-bound; the web server's event loop must stay responsive) at real-time pace, at a chosen
+speed or as fast as possible, with play / pause / seek / speed. Every processed frame is handed
+to a ``FrameSink`` together with whether it is *live* (shown to clients) or part of a seek.
+
+Seek: forward = fast-forward from the current position (the estimator is causal, so this is
+exactly what a restart would compute); backward = restore the nearest cached checkpoint at or
+before the target (a deep copy of the engine taken every ``checkpoint_interval_s`` of
+recording time, ~10 ms for the real engine) and fast-forward from there, or restart from the
+start when there is none (the target precedes the first checkpoint, or the engine cannot be
+copied). Frames computed while seeking are not sent to clients.
+"""
+
+from __future__ import annotations
+
+import copy
+import heapq
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any, Protocol
+
+import numpy as np
+
+from estimator.records import GnssEpoch
+from recordings.format import Recording
+
+from .engine import FusionEngine
+
+log = logging.getLogger(__name__)
+
+# Priority of the message kinds at equal time tags (see the module docstring).
+_IMU, _GNSS, _FRAME = 0, 1, 2
+GNSS_GROUP_TOLERANCE_S = 1e-3  # receivers on one clock tag the same epoch identically
+MAX_LAG_S = 0.5  # when the engine falls further behind real time, the clock is re-anchored
+
+
+# ------------------------------------------------------------------------ sensor messages
+
+
+@dataclass(frozen=True)
+class ImuMessage:
+    t: float
+    gyro: np.ndarray  # (3,) rad/s, body
+    accel: np.ndarray  # (3,) m/s^2, body
+
+
+@dataclass(frozen=True)
+class GnssMessage:
+    t: float
+    epochs: tuple[GnssEpoch | None, ...]  # one per receiver; None when a receiver missed it
+
+
+@dataclass(frozen=True)
+class FrameMessage:
+    t: float
+    index: int
+    image: np.ndarray  # BGR
+
+
+SensorMessage = ImuMessage | GnssMessage | FrameMessage
+
+
+def group_gnss(rec: Recording) -> list[GnssMessage]:
+    """The receivers' epochs grouped by time tag, in time order (one message per tag)."""
+    receivers = len(rec.gnss)
+    tags: dict[int, list[GnssEpoch | None]] = {}
+    times: dict[int, float] = {}
+    for rx, epochs in enumerate(rec.gnss):
+        for epoch in epochs:
+            key = int(round(epoch.time / GNSS_GROUP_TOLERANCE_S))
+            slot = tags.setdefault(key, [None] * receivers)
+            slot[rx] = epoch
+            times.setdefault(key, epoch.time)
+    out = []
+    for key in sorted(tags):
+        t = times[key]
+        out.append(GnssMessage(t, tuple(tags[key])))
+    return out
+
+
+def sensor_messages(rec: Recording, after: float | None = None) -> Iterator[SensorMessage]:
+    """All sensor messages of ``rec`` in time order, those strictly after ``after`` (gpst)
+    when given. Frames are decoded lazily, one at a time."""
+    lo = -np.inf if after is None else after
+
+    def imu() -> Iterator[tuple[float, int, int, SensorMessage]]:
+        data = rec.imu
+        first = int(np.searchsorted(data.time, lo, side="right"))
+        for i in range(first, len(data.time)):
+            t = float(data.time[i])
+            yield t, _IMU, i, ImuMessage(t, data.gyro[i], data.accel[i])
+
+    def gnss() -> Iterator[tuple[float, int, int, SensorMessage]]:
+        for i, msg in enumerate(group_gnss(rec)):
+            if msg.t > lo:
+                yield msg.t, _GNSS, i, msg
+
+    def frames() -> Iterator[tuple[float, int, int, SensorMessage]]:
+        first = int(np.searchsorted(rec.frame_times, lo, side="right"))
+        if first >= len(rec.frame_times):
+            return
+        for index, t, image in rec.frames(first):
+            yield t, _FRAME, index, FrameMessage(t, index, image)
+
+    for _t, _kind, _i, msg in heapq.merge(imu(), gnss(), frames(), key=lambda m: m[:3]):
+        yield msg
+
+
+def snapshot(engine: FusionEngine, shared: tuple[Any, ...] = ()) -> FusionEngine:
+    """Deep copy of an engine that continues exactly like the original.
+
+    Shared, not copied: the objects in ``shared`` (the engine's inputs: calibration, navigation
+    data — never modified by an engine) and OpenCV objects, which cannot be copied and which
+    engines hold as stateless configured tools (feature detectors).
+    """
+    memo: dict[int, Any] = {id(o): o for o in shared}
+    seen: set[int] = set(memo)
+    stack: list[Any] = [engine]
+    while stack:
+        obj = stack.pop()
+        if id(obj) in seen or isinstance(obj, np.ndarray | str | bytes | int | float):
+            continue
+        seen.add(id(obj))
+        if type(obj).__module__.startswith("cv2"):
+            memo[id(obj)] = obj
+        elif isinstance(obj, dict):
+            stack.extend(obj.values())
+        elif isinstance(obj, list | tuple | set | frozenset | deque):
+            stack.extend(obj)
+        elif hasattr(obj, "__dict__"):
+            stack.extend(vars(obj).values())
+    return copy.deepcopy(engine, memo)
+
+
+def dispatch(engine: FusionEngine, msg: SensorMessage) -> Any | None:
+    """Feed one message to the engine; the fused state for a frame, else None."""
+    if isinstance(msg, ImuMessage):
+        engine.process_imu(msg.t, msg.gyro, msg.accel)
+        return None
+    if isinstance(msg, GnssMessage):
+        engine.process_gnss(msg.t, list(msg.epochs))
+        return None
+    return engine.process_frame(msg.t, msg.image)
+
+
+# ----------------------------------------------------------------------------- replayer
+
+
+class ReplayState(StrEnum):
+    STARTING = "starting"
+    PLAYING = "playing"
+    PAUSED = "paused"
+    SEEKING = "seeking"
+    ENDED = "ended"
+    ERROR = "error"
+    STOPPED = "stopped"
+
+
+@dataclass
+class FrameResult:
+    index: int
+    t: float  # gpst
+    image: np.ndarray  # BGR
+    state: Any | None  # FusedState, None while the engine has no solution yet
+    live: bool  # False while seeking (computed but not shown)
+    processed_wall: float  # time.time() when the engine returned
+
+
+class FrameSink(Protocol):
+    """Receives the replay's output. Called in the replay thread; ``engine`` may be queried
+    (``structure``, ``timing``) during the call only."""
+
+    def on_frame(self, result: FrameResult, engine: FusionEngine) -> None: ...
+
+    def on_rewind(self, t: float | None) -> None:
+        """Results after gpst ``t`` (all results when None) are void: the replay went back."""
+
+    def on_state(self, state: ReplayState) -> None: ...
+
+
+@dataclass
+class _Checkpoint:
+    t: float  # gpst of the frame after which the engine was copied
+    engine: FusionEngine
+
+
+class Replayer:
+    """Plays ``rec`` through an engine made by ``make_engine`` in a daemon thread."""
+
+    def __init__(self, rec: Recording, make_engine: Callable[[], FusionEngine], sink: FrameSink,
+                 speed: float | None = 1.0, checkpoint_interval_s: float | None = 10.0,
+                 max_checkpoints: int = 20, shared: tuple[Any, ...] = ()) -> None:
+        self.rec = rec
+        self._shared = shared  # engine inputs a snapshot shares instead of copying
+        self._make_engine = make_engine
+        self._sink = sink
+        self._cond = threading.Condition()
+        self._speed = speed  # None = as fast as possible
+        self._playing = True
+        self._seek_to: float | None = None  # gpst target of a pending seek command
+        self._stop = False
+        self._state = ReplayState.STARTING
+        self._error: str | None = None
+        self._t = float(rec.manifest.start_gpst)  # time of the last processed message
+        self._frames = 0
+        self._lag = 0.0  # s the last message was late on the replay clock
+        self._behind = 0.0  # recording s lost to re-anchoring since the clock last started
+        self._checkpoint_interval = checkpoint_interval_s
+        self._max_checkpoints = max_checkpoints
+        self._checkpoints: list[_Checkpoint] = []
+        self._checkpoint_note: str | None = None
+        self._thread = threading.Thread(target=self._run, name=f"replay-{rec.manifest.name}",
+                                        daemon=True)
+
+    # ------------------------------------------------------------------ control (any thread)
+
+    def start(self, paused: bool = False) -> None:
+        """Start the replay thread; ``paused``: stop on the first frame (shown to clients)."""
+        self._playing = not paused
+        if paused:
+            self._seek_to = float(self.rec.manifest.start_gpst)
+        self._thread.start()
+
+    def play(self) -> None:
+        with self._cond:
+            if self._state in (ReplayState.ENDED, ReplayState.ERROR):
+                self._seek_to = float(self.rec.manifest.start_gpst)  # play again from the start
+            self._playing = True
+            self._cond.notify_all()
+
+    def pause(self) -> None:
+        with self._cond:
+            self._playing = False
+            self._cond.notify_all()
+
+    def set_speed(self, speed: float | None) -> None:
+        with self._cond:
+            self._speed = speed
+            self._cond.notify_all()
+
+    def seek(self, t: float) -> None:
+        """Seek to gpst ``t`` (clamped to the recording by the caller)."""
+        with self._cond:
+            self._seek_to = float(t)
+            self._cond.notify_all()
+
+    def stop(self, timeout: float | None = 5.0) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+
+    def status(self) -> dict[str, Any]:
+        with self._cond:
+            return {
+                "state": self._state.value,
+                "time_gpst": self._t,
+                "playing": self._playing,
+                "speed": self._speed,
+                "seek_target_gpst": self._seek_to,
+                "frames_processed": self._frames,
+                "lag_s": self._lag,
+                "behind_s": self._behind,
+                "error": self._error,
+                "checkpoints": [c.t for c in self._checkpoints],
+                "checkpoint_note": self._checkpoint_note,
+            }
+
+    @property
+    def state(self) -> ReplayState:
+        return self._state
+
+    # ---------------------------------------------------------------- replay thread
+
+    def _restart(self, target: float) -> tuple[FusionEngine, Iterator[SensorMessage]]:
+        """Engine and message iterator positioned before ``target`` (gpst): from the newest
+        checkpoint at or before it, else from the start."""
+        with self._cond:
+            usable = [c for c in self._checkpoints if c.t <= target]
+            self._checkpoints = usable
+        if usable:
+            cp = usable[-1]
+            try:
+                engine = snapshot(cp.engine, self._shared)  # the checkpoint stays pristine
+            except Exception as exc:  # a copy that worked once should work again; be safe
+                log.warning("checkpoint restore failed (%s); restarting from the start", exc)
+            else:
+                self._sink.on_rewind(cp.t)
+                with self._cond:
+                    self._t = cp.t
+                    self._frames = int(np.searchsorted(self.rec.frame_times, cp.t, "right"))
+                return engine, sensor_messages(self.rec, after=cp.t)
+        with self._cond:
+            self._checkpoints = []
+            self._t = float(self.rec.manifest.start_gpst)
+            self._frames = 0
+        self._sink.on_rewind(None)
+        return self._make_engine(), sensor_messages(self.rec)
+
+    def _maybe_checkpoint(self, engine: FusionEngine, t: float) -> None:
+        if self._checkpoint_interval is None or self._checkpoint_note is not None:
+            return
+        last = self._checkpoints[-1].t if self._checkpoints else self.rec.manifest.start_gpst
+        if t - last < self._checkpoint_interval:
+            return
+        try:
+            copied = snapshot(engine, self._shared)
+        except Exception as exc:  # an engine holding something that cannot be copied
+            self._checkpoint_note = f"checkpoints disabled: the engine cannot be copied ({exc})"
+            log.info(self._checkpoint_note)
+            return
+        with self._cond:
+            self._checkpoints.append(_Checkpoint(t, copied))
+            if len(self._checkpoints) > self._max_checkpoints:
+                del self._checkpoints[1::2]  # thin out evenly, keep the first
+
+    def _idle(self) -> bool:
+        """Nothing to do until a command arrives (called with the condition held)."""
+        if self._stop or self._seek_to is not None:
+            return False
+        return self._state in (ReplayState.ENDED, ReplayState.ERROR) or not self._playing
+
+    def _fail(self, message: str) -> None:
+        with self._cond:
+            self._error = message
+            self._state = ReplayState.ERROR
+
+    def _run(self) -> None:
+        # The sink is only ever called with the condition released: its callbacks take the
+        # session's lock, and API threads holding that lock read this replayer's status.
+        notified: ReplayState | None = None
+        engine: FusionEngine | None = None
+        messages: Iterator[SensorMessage] = iter(())
+        pending: SensorMessage | None = None  # taken from the iterator, not yet processed
+        target: float | None = None  # gpst the current fast-forward runs to
+        anchor: tuple[float, float] | None = None  # (wall, gpst) of the pacing clock
+        try:
+            engine = self._make_engine()
+            messages = sensor_messages(self.rec)
+        except Exception as exc:
+            log.exception("cannot start the replay")
+            self._fail(f"cannot start the fusion engine: {exc}")
+        while True:
+            goal: float | None = None
+            restart = False
+            with self._cond:
+                if self._stop:
+                    self._state = ReplayState.STOPPED
+                elif self._seek_to is not None:
+                    goal, self._seek_to = self._seek_to, None
+                    restart = (goal < self._t or engine is None
+                               or self._state == ReplayState.ERROR)
+                    self._error = None
+                    self._state = ReplayState.SEEKING
+                elif target is not None:
+                    self._state = ReplayState.SEEKING
+                elif self._state not in (ReplayState.ENDED, ReplayState.ERROR):
+                    self._state = ReplayState.PLAYING if self._playing else ReplayState.PAUSED
+                state, speed = self._state, self._speed
+            if state != notified:
+                self._sink.on_state(state)
+                notified = state
+            if state == ReplayState.STOPPED:
+                return
+            if goal is not None:
+                target, anchor = goal, None
+                if restart:
+                    pending = None
+                    try:
+                        engine, messages = self._restart(goal)
+                    except Exception as exc:
+                        log.exception("cannot restart the replay")
+                        self._fail(f"cannot restart the fusion engine: {exc}")
+                        target = None
+                        continue
+            with self._cond:
+                if target is None and self._idle():
+                    anchor = None
+                    self._cond.wait()
+                    continue
+            if pending is None:
+                try:
+                    pending = next(messages)
+                except StopIteration:
+                    with self._cond:
+                        self._state = ReplayState.ENDED
+                    target = None
+                    continue
+                except Exception as exc:  # a broken video or file while replaying
+                    log.exception("replay input failed")
+                    self._fail(f"reading the recording failed: {exc}")
+                    target = None
+                    continue
+            msg = pending
+            if target is None and speed is not None:
+                anchor = self._pace(msg.t, speed, anchor)
+                if anchor is None:  # a command arrived while waiting: handle it first
+                    continue
+            pending = None
+            assert engine is not None
+            try:
+                fused = dispatch(engine, msg)
+            except Exception as exc:
+                log.exception("fusion engine failed at t=%.3f", msg.t)
+                self._fail(f"fusion engine failed at gpst {msg.t:.3f}: {exc!r}")
+                target = None
+                continue
+            with self._cond:
+                self._t = msg.t
+                if isinstance(msg, FrameMessage):
+                    self._frames += 1
+            if not isinstance(msg, FrameMessage):
+                continue
+            live = target is None or msg.t >= target
+            try:
+                self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, live,
+                                                time.time()), engine)
+            except Exception:  # what is done with a result must not stop the replay
+                log.exception("frame sink failed at frame %d", msg.index)
+            self._maybe_checkpoint(engine, msg.t)
+            if target is not None and msg.t >= target:
+                target = None  # seek done: playing or paused resumes from here
+
+    def _pace(self, t: float, speed: float, anchor: tuple[float, float] | None
+              ) -> tuple[float, float] | None:
+        """Sleep until message time ``t`` is due on the replay clock; None when a command
+        arrived meanwhile. Re-anchors when behind by more than MAX_LAG_S (no catch-up burst)."""
+        now = time.monotonic()
+        if anchor is None:
+            with self._cond:
+                self._lag = self._behind = 0.0
+            return now, t
+        due = anchor[0] + (t - anchor[1]) / speed
+        with self._cond:
+            self._lag = max(0.0, now - due)
+            if now - due > MAX_LAG_S:
+                self._behind += (now - due) * speed  # the engine is slower than real time
+                return now, t
+            while True:
+                if self._stop or self._seek_to is not None or not self._playing:
+                    return None
+                if self._speed != speed:
+                    return None
+                remaining = due - time.monotonic()
+                if remaining <= 0:
+                    return anchor
+                self._cond.wait(remaining)
+
+

@@ -1,0 +1,104 @@
+"""Routes of a session's designated ``targets`` and its ``berth-line``."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response, status
+
+from .deps import SessionDep, errors
+from .models import (
+    BerthLineRequest,
+    BerthLineStatus,
+    TargetCreate,
+    TargetDetail,
+    TargetList,
+    TargetOut,
+    TrackPoint,
+)
+from .sessions import Session, Target
+
+router = APIRouter(prefix="/api/sessions/{session_id}", tags=["targets"])
+
+
+def _target_out(session: Session, target: Target) -> dict:
+    last = target.track[-1] if target.track else None
+    return {
+        "id": target.id,
+        "label": target.label,
+        "method": target.method,
+        "position_ned": [round(float(x), 4) for x in target.position_ned],
+        "frame_time": round(target.frame_gpst - session.start_gpst, 6),
+        "designated_t": round(target.designated_gpst - session.start_gpst, 6),
+        "uv": list(target.uv),
+        "support_points": target.support,
+        "distance_m": last["distance_m"] if last else None,
+        "hull_distance_m": last["hull_distance_m"] if last else None,
+        "visible": last["visible"] if last else None,
+    }
+
+
+@router.post("/targets", response_model=TargetOut, status_code=status.HTTP_201_CREATED,
+             responses=errors(404, 409, 422), summary="Designate a point in the video")
+def create_target(body: TargetCreate, session: SessionDep) -> TargetOut:
+    """The 3-D point under pixel (u, v) of a frame (``frame_time``, or the current one): from
+    the port-structure points projecting within 12 px of the pixel (median range along the
+    ray; ``method`` = ``structure``), else where the ray meets the water plane (``method`` =
+    ``water-plane``); 422 when neither exists. The target then follows its anchoring
+    structure points and its distance is tracked frame by frame."""
+    frame_t = None if body.frame_time == "current" else float(body.frame_time)
+    target = session.designate(frame_t, body.u, body.v, body.label)
+    return TargetOut(**_target_out(session, target))
+
+
+@router.get("/targets", response_model=TargetList, responses=errors(404),
+            summary="Designated targets")
+def list_targets(session: SessionDep) -> TargetList:
+    return TargetList(targets=[TargetOut(**_target_out(session, t)) for t in session.targets()])
+
+
+@router.get("/targets/{target_id}", response_model=TargetDetail, responses=errors(404),
+            summary="A target with its track over time")
+def get_target(target_id: str, session: SessionDep) -> TargetDetail:
+    target = session.target(target_id)
+    with session.lock:
+        track = [TrackPoint(**p) for p in target.track]
+        out = _target_out(session, target)
+    return TargetDetail(**out, track=track)
+
+
+@router.delete("/targets/{target_id}", status_code=status.HTTP_204_NO_CONTENT,
+               responses=errors(404), summary="Forget a target")
+def delete_target(target_id: str, session: SessionDep) -> Response:
+    session.delete_target(target_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+def _berth_status(session: Session) -> BerthLineStatus:
+    return BerthLineStatus(**session.berth_status())
+
+
+@router.put("/berth-line", response_model=BerthLineStatus, responses=errors(404, 409, 422),
+            summary="Set the berth line")
+def put_berth_line(body: BerthLineRequest, session: SessionDep) -> BerthLineStatus:
+    """From two (north, east) points, or from two pixels on the quay's water line of a frame
+    (their rays meet the water plane). Answers the bow and stern distance to the line and
+    their approach speeds (positive closing) at the current pose."""
+    if body.ned is not None:
+        session.set_berth_line_ned(body.ned)
+    else:
+        frame_t = None if body.frame_time == "current" else float(body.frame_time)
+        session.set_berth_line_image(frame_t, body.image_points)
+    return _berth_status(session)
+
+
+@router.get("/berth-line", response_model=BerthLineStatus, responses=errors(404),
+            summary="Berth line with bow/stern distance and approach speed")
+def get_berth_line(session: SessionDep) -> BerthLineStatus:
+    return _berth_status(session)
+
+
+@router.delete("/berth-line", status_code=status.HTTP_204_NO_CONTENT, responses=errors(404),
+               summary="Remove the berth line")
+def delete_berth_line(session: SessionDep) -> Response:
+    session.clear_berth_line()
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+

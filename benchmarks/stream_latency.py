@@ -1,0 +1,158 @@
+"""Stream latency: several WebSocket clients watching one session in real time.
+
+Starts ``berthing-aid serve`` in a subprocess (real fusion engine, 3-D viewer on), opens one
+session at real-time pace (10 fps video), connects ``--clients`` stream clients (with
+acknowledgement flow control) for ``--seconds`` and prints:
+
+- frame-to-client latency p50 / p95 / max: client receive time minus ``processed_at`` (the
+  server's wall time when the engine returned the frame's state; overlay + JPEG + queueing +
+  transport) and minus ``sent_at`` (transport only);
+- frames received per client and the frame rate;
+- the engine's own per-frame time (``timing`` of the session) and how far it lags the clock;
+- server CPU (% of one core, user + system) and RSS (max), read from /proc.
+
+    .venv/bin/python benchmarks/stream_latency.py [RECORDING] [--clients 4] [--seconds 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import websockets
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_RECORDING = ROOT / "recordings" / "default"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def proc_cpu_seconds(pid: int) -> float:
+    """user + system CPU seconds of a process and its threads (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def proc_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+async def client(url: str, until: float, out: list[tuple[float, float, float]]) -> None:
+    """Receive frames until ``until`` (wall clock); record (received, processed_at, sent_at)."""
+    async with websockets.connect(url + "?ack=1", max_size=None) as ws:
+        while time.time() < until:
+            try:
+                message = await asyncio.wait_for(ws.recv(), timeout=max(0.1, until - time.time()))
+            except TimeoutError:
+                break
+            if not isinstance(message, str):
+                continue
+            header = json.loads(message)
+            if header["type"] == "frame":
+                await ws.recv()  # the JPEG
+                out.append((time.time(), header["processed_at"], header["sent_at"]))
+                await ws.send(json.dumps({"type": "ack", "seq": header["seq"]}))
+            elif header["type"] != "status":
+                break
+
+
+def percentiles(values: list[float]) -> str:
+    if not values:
+        return "no frames"
+    a = 1e3 * np.asarray(values)
+    return (f"p50 {np.percentile(a, 50):6.1f} ms   p95 {np.percentile(a, 95):6.1f} ms   "
+            f"max {a.max():6.1f} ms")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("recording", nargs="?", default=str(DEFAULT_RECORDING))
+    parser.add_argument("--clients", type=int, default=4)
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--speed", type=float, default=1.0, help="replay speed (10 fps at 1)")
+    parser.add_argument("--no-viewer", action="store_true", help="without the 3-D viewer")
+    args = parser.parse_args()
+    recording = Path(args.recording).resolve()
+    if not (recording / "manifest.json").is_file():
+        print(f"no recording at {recording}; make one with berthing-aid simulate", file=sys.stderr)
+        return 2
+
+    port = free_port()
+    command = [sys.executable, "-m", "backend.cli", "serve", str(recording), "--port", str(port)]
+    command += ["--no-viewer"] if args.no_viewer else ["--viser-port", "0"]
+    server = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        with httpx.Client(base_url=base, timeout=60) as http:
+            for _ in range(300):
+                try:
+                    http.get("/api/recordings")
+                    break
+                except httpx.TransportError:
+                    if server.poll() is not None:
+                        print(server.stderr.read(), file=sys.stderr)
+                        return 1
+                    time.sleep(0.1)
+            name = http.get("/api/recordings").json()["default"]
+            session = http.post("/api/sessions", json={"recording": name, "speed": args.speed,
+                                                       "paused": True}).json()
+            sid = session["id"]
+            duration = min(args.seconds, session["duration_s"] / args.speed)
+            url = f"ws://127.0.0.1:{port}/api/sessions/{sid}/stream"
+            received: list[list[tuple[float, float, float]]] = [[] for _ in range(args.clients)]
+            rss: list[float] = []
+
+            async def run() -> tuple[float, float]:
+                until = time.time() + duration + 0.5
+                tasks = [asyncio.create_task(client(url, until, out)) for out in received]
+                await asyncio.sleep(0.5)  # all connected
+                cpu0, wall0 = proc_cpu_seconds(server.pid), time.monotonic()
+                http.post(f"/api/sessions/{sid}/control", json={"action": "play"})
+                while time.time() < until:
+                    rss.append(proc_rss_mb(server.pid))
+                    await asyncio.sleep(0.5)
+                await asyncio.gather(*tasks)
+                return proc_cpu_seconds(server.pid) - cpu0, time.monotonic() - wall0
+
+            cpu, wall = asyncio.run(run())
+            status = http.get(f"/api/sessions/{sid}").json()
+            http.delete(f"/api/sessions/{sid}")
+    finally:
+        server.terminate()
+        server.wait(10)
+
+    everything = [r for out in received for r in out]
+    print(f"recording {recording.name}: {args.clients} clients, {duration:.1f} s at speed "
+          f"{args.speed:g} (10 fps video), viewer {'off' if args.no_viewer else 'on'}")
+    print(f"frames received per client: {[len(out) for out in received]} "
+          f"(~{10 * args.speed * duration:.0f} expected); replay position {status['time_s']:.1f}"
+          f" s, fell behind real time by {status['behind_s']:.1f} s, fusion phase "
+          f"{(status['fusion'] or {}).get('phase')}")
+    timing = status["timing_ms"]
+    print("engine ms per call: " + ", ".join(f"{k} {v:.1f}" for k, v in sorted(timing.items())))
+    print(f"latency engine-done → client: {percentiles([r - p for r, p, _ in everything])}")
+    print(f"latency send → client:        {percentiles([r - s for r, _, s in everything])}")
+    print(f"server CPU {100 * cpu / wall:5.1f} % of one core (user+system, "
+          f"{os.cpu_count()} cores), RSS max {max(rss):.0f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

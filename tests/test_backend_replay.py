@@ -1,0 +1,248 @@
+"""Replay of a recording as a live feed (backend/replay.py): message order, pacing, pause, seek
+and checkpoints. Uses a short simulated recording (made once per test session) and small
+engine doubles; one test runs the real fusion engine to check that a checkpoint continues
+exactly like the original."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from backend.replay import (
+    FrameMessage,
+    FrameResult,
+    GnssMessage,
+    ImuMessage,
+    Replayer,
+    ReplayState,
+    dispatch,
+    group_gnss,
+    sensor_messages,
+    snapshot,
+)
+from recordings.format import Recording, load
+
+
+@pytest.fixture(scope="session")
+def sim_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 12 s small-boat recording, simulated once per test session (shared by the backend
+    test modules through the session's base temporary directory)."""
+    from recordings.sim.simulate import simulate
+
+    root = tmp_path_factory.getbasetemp() / "backend-recordings"
+    path = root / "small-boat-12s"
+    if not (path / "manifest.json").is_file():
+        staging = tmp_path_factory.mktemp("simulating")
+        simulate("small-boat", 1, staging / "rec", duration_s=12, progress=False)
+        root.mkdir(exist_ok=True)
+        (staging / "rec").rename(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def rec(sim_recording: Path) -> Recording:
+    return load(sim_recording)
+
+
+# ------------------------------------------------------------------------------ messages
+
+
+def test_messages_are_in_time_order_like_a_live_feed(rec: Recording):
+    kinds = {ImuMessage: 0, GnssMessage: 1, FrameMessage: 2}
+    messages = list(sensor_messages(rec))
+    keys = [(m.t, kinds[type(m)]) for m in messages]
+    assert keys == sorted(keys)  # at equal time tags: IMU, then GNSS, then the frame
+    assert sum(isinstance(m, ImuMessage) for m in messages) == len(rec.imu)
+    frames = [m for m in messages if isinstance(m, FrameMessage)]
+    assert [f.index for f in frames] == list(range(len(rec.frame_times)))
+    assert frames[0].image.shape == (rec.calibration.camera.height,
+                                     rec.calibration.camera.width, 3)
+    gnss = [m for m in messages if isinstance(m, GnssMessage)]
+    assert len(gnss) == len(rec.gnss[0]) == 13
+    for m in gnss:  # one message per time tag with the four receivers' epochs
+        assert len(m.epochs) == 4
+        assert all(e is not None and abs(e.time - m.t) < 1e-6 for e in m.epochs)
+
+
+def test_messages_after_a_time_and_missing_receivers(rec: Recording):
+    t_cut = float(rec.frame_times[50])
+    later = list(sensor_messages(rec, after=t_cut))
+    assert later and all(m.t > t_cut for m in later)
+    assert next(m for m in later if isinstance(m, FrameMessage)).index == 51
+    # a receiver that missed an epoch leaves a None in its slot
+    saved = rec.gnss[2]
+    try:
+        rec.gnss[2] = saved[:5] + saved[6:]
+        groups = group_gnss(rec)
+        assert groups[5].epochs[2] is None and groups[5].epochs[1] is not None
+    finally:
+        rec.gnss[2] = saved
+
+
+# ------------------------------------------------------------------------------- replayer
+
+
+@dataclass
+class _State:
+    time: float
+    value: float
+
+
+class SumEngine:
+    """Deterministic double: its 'state' depends on every message it has seen."""
+
+    def __init__(self) -> None:
+        self.total = 0.0
+        self.frames = 0
+
+    def process_imu(self, t, gyro, accel) -> None:
+        self.total += float(accel[2]) * 1e-3 + float(t - 1.4e9) * 1e-6
+
+    def process_gnss(self, t, epochs) -> None:
+        self.total += sum(len(e.satellites) for e in epochs if e is not None)
+
+    def process_frame(self, t, image) -> _State:
+        self.frames += 1
+        self.total += float(image[::50, ::50].mean())
+        return _State(t, self.total)
+
+    def state(self) -> _State | None:
+        return None
+
+    def structure(self):
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int)
+
+    def timing(self) -> dict:
+        return {}
+
+
+@dataclass
+class Sink:
+    results: list[FrameResult] = field(default_factory=list)
+    rewinds: list[float | None] = field(default_factory=list)
+    states: list[ReplayState] = field(default_factory=list)
+    event: threading.Event = field(default_factory=threading.Event)
+
+    def on_frame(self, result: FrameResult, engine) -> None:
+        self.results.append(result)
+
+    def on_rewind(self, t: float | None) -> None:
+        self.rewinds.append(t)
+        self.results = [r for r in self.results if t is not None and r.t <= t]
+
+    def on_state(self, state: ReplayState) -> None:
+        self.states.append(state)
+        if state in (ReplayState.ENDED, ReplayState.PAUSED, ReplayState.ERROR):
+            self.event.set()
+
+
+def wait_for(predicate, timeout: float = 10.0) -> None:
+    end = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > end:
+            raise AssertionError("timed out")
+        time.sleep(0.01)
+
+
+def test_replay_as_fast_as_possible_then_seek_back_from_a_checkpoint(rec: Recording):
+    sink = Sink()
+    replayer = Replayer(rec, SumEngine, sink, speed=None, checkpoint_interval_s=3.0)
+    replayer.start()
+    try:
+        wait_for(lambda: replayer.state == ReplayState.ENDED)
+        straight = {r.index: r.state.value for r in sink.results}
+        assert len(straight) == len(rec.frame_times)
+        assert all(r.live for r in sink.results)
+        checkpoints = replayer.status()["checkpoints"]
+        start = rec.manifest.start_gpst
+        assert np.round(np.array(checkpoints) - start, 3).tolist() == [3.0, 6.0, 9.0, 12.0]
+        # seek back to 7.5 s: restore the 6 s checkpoint, fast-forward without showing frames
+        replayer.pause()
+        replayer.seek(start + 7.5)
+        wait_for(lambda: replayer.state == ReplayState.PAUSED and sink.results
+                 and sink.results[-1].live and sink.results[-1].t >= rec.frame_times[75])
+        assert sink.rewinds[-1] == pytest.approx(checkpoints[1])
+        replayed = [r for r in sink.results if r.t > checkpoints[1]]
+        assert [r.live for r in replayed] == [False] * (len(replayed) - 1) + [True]
+        assert replayed[-1].index == 75  # paused on the first frame at/after the target
+        for r in replayed:
+            assert r.state.value == straight[r.index]  # identical to the uninterrupted run
+        # seek before the first checkpoint: restart from the start
+        replayer.seek(start + 1.0)
+        wait_for(lambda: sink.results and sink.results[-1].index == 10
+                 and replayer.state == ReplayState.PAUSED)
+        assert sink.rewinds[-1] is None
+        assert sink.results[-1].state.value == straight[10]
+    finally:
+        replayer.stop()
+
+
+def test_real_time_pace_pause_and_speed(rec: Recording):
+    sink = Sink()
+    replayer = Replayer(rec, SumEngine, sink, speed=4.0)
+    t0 = time.monotonic()
+    replayer.start()
+    try:
+        wait_for(lambda: len(sink.results) >= 21)  # 2 s of recording at 4x: ~0.5 s
+        elapsed = time.monotonic() - t0
+        assert 0.45 < elapsed < 3.0  # never ahead of the clock; generous when CPUs are busy
+        replayer.pause()
+        wait_for(lambda: replayer.state == ReplayState.PAUSED)
+        n = len(sink.results)
+        time.sleep(0.3)
+        assert len(sink.results) == n  # paused means paused
+        replayer.set_speed(20.0)
+        t1 = time.monotonic()
+        replayer.play()
+        wait_for(lambda: replayer.state == ReplayState.ENDED)
+        remaining = (rec.frame_times[-1] - sink.results[n - 1].t) / 20.0
+        assert remaining - 0.05 < time.monotonic() - t1 < remaining + 2.0
+    finally:
+        replayer.stop()
+
+
+def test_engine_failure_is_reported_and_play_restarts(rec: Recording):
+    class Failing(SumEngine):
+        def process_frame(self, t, image):
+            if self.frames == 5:
+                raise FloatingPointError("diverged")
+            return super().process_frame(t, image)
+
+    sink = Sink()
+    replayer = Replayer(rec, Failing, sink, speed=None)
+    replayer.start()
+    try:
+        wait_for(lambda: replayer.state == ReplayState.ERROR)
+        status = replayer.status()
+        assert "diverged" in status["error"] and len(sink.results) == 5
+        replayer.play()  # from the start again, with a new engine
+        wait_for(lambda: sink.rewinds == [None])
+    finally:
+        replayer.stop()
+    assert replayer.state == ReplayState.STOPPED
+
+
+def test_snapshot_of_the_real_engine_continues_identically(rec: Recording):
+    from estimator.pipeline import Fusion, FusionOptions
+
+    engine = Fusion(rec.calibration, rec.nav, FusionOptions())
+    messages = sensor_messages(rec)
+    for msg in messages:
+        dispatch(engine, msg)
+        if isinstance(msg, FrameMessage) and msg.index == 30:
+            break
+    copy = snapshot(engine, shared=(rec, rec.calibration, rec.nav))
+    assert copy.calibration is engine.calibration  # inputs shared, state copied
+    last_a = last_b = None
+    for _, msg in zip(range(300), messages, strict=False):  # ~1.5 s more
+        a, b = dispatch(engine, msg), dispatch(copy, msg)
+        if a is not None:
+            last_a, last_b = a, b
+    assert last_a is not None
+    np.testing.assert_array_equal(last_a.position_ned, last_b.position_ned)
+    np.testing.assert_array_equal(last_a.euler, last_b.euler)

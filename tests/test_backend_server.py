@@ -1,0 +1,609 @@
+"""The web server end to end: the real server (uvicorn on a free loopback port, in a thread),
+httpx and websockets clients, the viser scene through viser's own client protocol.
+
+Two servers: one with the real fusion engine (``estimator.pipeline.Fusion``) for the main
+end-to-end flow, one with ``ReferenceEngine`` — a test double that answers the recording's
+reference pose — to exercise the server mechanics (several clients, slow clients, bad
+requests) quickly and deterministically.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import httpx
+import msgspec
+import numpy as np
+import pytest
+import uvicorn
+import viser
+import websockets
+import zstandard
+
+from backend.app import Settings, create_app
+from backend.models import StreamFrameHeader
+from estimator.frames import euler_to_dcm
+from recordings.format import Recording, load
+
+RECORDING = "small-boat-12s"
+
+
+@pytest.fixture(scope="session")
+def sim_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 12 s small-boat recording, simulated once per test session (shared by the backend
+    test modules through the session's base temporary directory)."""
+    from recordings.sim.simulate import simulate
+
+    root = tmp_path_factory.getbasetemp() / "backend-recordings"
+    path = root / RECORDING
+    if not (path / "manifest.json").is_file():
+        staging = tmp_path_factory.mktemp("simulating")
+        simulate("small-boat", 1, staging / "rec", duration_s=12, progress=False)
+        root.mkdir(exist_ok=True)
+        (staging / "rec").rename(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def rec(sim_recording: Path) -> Recording:
+    return load(sim_recording)
+
+
+# --------------------------------------------------------------------------- test double
+
+
+@dataclass
+class _Status:
+    phase: str = "fused"
+    compass_fixed: bool = True
+    satellites: int = 17
+    vo_status: str = "tracking"
+    scale: float | None = 1.0
+    scale_converged: bool = True
+    message: str = "reference double"
+
+
+@dataclass
+class _Fused:
+    time: float
+    position_ned: np.ndarray
+    llh_deg: np.ndarray
+    velocity_ned: np.ndarray
+    euler: np.ndarray
+    C_body_to_level: np.ndarray
+    rate_of_turn: float
+    omega_body: np.ndarray
+    position_cov: np.ndarray
+    attitude_cov: np.ndarray
+    status: _Status
+
+
+class ReferenceEngine:
+    """Test double, for the server mechanics only: the pose of each frame is the recording's
+    reference, in the real engine's convention (world origin = body origin at the first
+    frame); the structure is the reference scene points."""
+
+    def __init__(self, rec: Recording) -> None:
+        self.rec = rec
+        self.origin: np.ndarray | None = None
+        self._state: _Fused | None = None
+
+    def process_imu(self, t, gyro, accel) -> None:
+        pass
+
+    def process_gnss(self, t, epochs) -> None:
+        pass
+
+    def process_frame(self, t, image) -> _Fused:
+        ref = self.rec.reference
+        p, v, e = ref.interpolate(t)
+        if self.origin is None:
+            self.origin = p.copy()
+        i = int(np.searchsorted(ref.time, t))
+        _, _, ahead = ref.interpolate(min(t + 0.05, ref.time[-1]))
+        _, _, behind = ref.interpolate(max(t - 0.05, ref.time[0]))
+        rate = float(np.angle(np.exp(1j * (ahead[2] - behind[2])))) / 0.1
+        self._state = _Fused(float(t), p - self.origin, ref.llh_deg[min(i, len(ref) - 1)], v, e,
+                             euler_to_dcm(*e), rate, np.zeros(3), np.eye(3) * 1e-4,
+                             np.eye(3) * 1e-6, _Status())
+        return self._state
+
+    def state(self) -> _Fused | None:
+        return self._state
+
+    def structure(self):
+        pts = self.rec.scene_points - (self.origin if self.origin is not None else 0.0)
+        return pts, np.full(len(pts), 0.05), np.arange(len(pts))
+
+    def timing(self) -> dict:
+        return {}
+
+
+# ------------------------------------------------------------------------------- servers
+
+
+@dataclass
+class Live:
+    url: str
+    ws: str
+    app: Any
+    rec: Recording
+
+
+def _serve(settings: Settings, rec: Recording) -> Iterator[Live]:
+    app = create_app(settings)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.bind(("127.0.0.1", 0))  # bound here: no race for a "free" port
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    end = time.monotonic() + 20
+    while not server.started:
+        assert time.monotonic() < end and thread.is_alive(), "server did not start"
+        time.sleep(0.02)
+    yield Live(f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}", app, rec)
+    server.should_exit = True
+    thread.join(10)
+    sock.close()
+
+
+@pytest.fixture(scope="module")
+def recordings_dir(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("recordings")
+    (d / RECORDING).symlink_to(sim_recording, target_is_directory=True)
+    (d / "broken").mkdir()
+    (d / "broken" / "manifest.json").write_text("{not json")
+    (d / "not-a-recording").mkdir()
+    # a recording without a reference trajectory (as a real one): same files, other manifest
+    bare = d / "no-reference"
+    bare.mkdir()
+    for item in sim_recording.iterdir():
+        if item.name not in ("manifest.json", "reference"):
+            (bare / item.name).symlink_to(item, target_is_directory=item.is_dir())
+    manifest = json.loads((sim_recording / "manifest.json").read_text())
+    manifest["files"].update(reference=None, scene_points=None)
+    (bare / "manifest.json").write_text(json.dumps(manifest))
+    return d
+
+
+@pytest.fixture(scope="module")
+def live(sim_recording: Path, recordings_dir: Path, rec: Recording) -> Iterator[Live]:
+    """Server with the real fusion engine and the 3-D viewer."""
+    yield from _serve(Settings(recordings_dir=recordings_dir, default_recording=sim_recording,
+                               viser_port=0), rec)
+
+
+@pytest.fixture(scope="module")
+def ref_live(sim_recording: Path, recordings_dir: Path, rec: Recording) -> Iterator[Live]:
+    """Server with the ReferenceEngine double, no viewer."""
+    yield from _serve(Settings(recordings_dir=recordings_dir, default_recording=sim_recording,
+                               viser_port=None,
+                               engine_factory=lambda cal, nav, opts: ReferenceEngine(rec)), rec)
+
+
+# ------------------------------------------------------------------------------- helpers
+
+
+@dataclass
+class Frame:
+    header: dict[str, Any]
+    jpeg: bytes
+    received: float
+
+
+async def _collect(url: str, stop: Callable[[list[Frame], list[dict]], bool],
+                   timeout: float = 60.0, delay: float = 0.0, ack: bool = True
+                   ) -> tuple[list[Frame], list[dict]]:
+    """Read a session stream until ``stop(frames, statuses)``; ``delay`` s of 'work' after
+    each frame makes a slow client; each frame is acknowledged after that work."""
+    frames: list[Frame] = []
+    statuses: list[dict] = []
+    async with websockets.connect(url + ("?ack=1" if ack else ""), max_size=None) as ws:
+        async with asyncio.timeout(timeout):
+            while not stop(frames, statuses):
+                message = await ws.recv()
+                assert isinstance(message, str), "a JPEG without its header"
+                header = json.loads(message)
+                if header["type"] == "frame":
+                    jpeg = await ws.recv()
+                    assert isinstance(jpeg, bytes) and len(jpeg) == header["jpeg_bytes"]
+                    frames.append(Frame(header, jpeg, time.time()))
+                    if delay:
+                        await asyncio.sleep(delay)
+                    if ack:
+                        await ws.send(json.dumps({"type": "ack", "seq": header["seq"]}))
+                elif header["type"] == "status":
+                    statuses.append(header["session"])
+                else:
+                    statuses.append(header)
+                    break
+    return frames, statuses
+
+
+def _ended(frames: list[Frame], statuses: list[dict]) -> bool:
+    return bool(statuses) and statuses[-1].get("state") == "ended"
+
+
+def _wait_status(client: httpx.Client, sid: str, predicate: Callable[[dict], bool],
+                 timeout: float = 60.0) -> dict:
+    end = time.monotonic() + timeout
+    while True:
+        status = client.get(f"/api/sessions/{sid}").json()
+        if predicate(status):
+            return status
+        assert time.monotonic() < end, f"timed out; last status {status}"
+        time.sleep(0.05)
+
+
+def _water_hit(pose: dict, uv: list[float], rec: Recording, plane_down: float) -> np.ndarray:
+    """Independent re-projection: undistort the pixel, intersect its ray with the water plane
+    using the pose of the message."""
+    cam = rec.calibration.camera
+    C_bl = euler_to_dcm(*np.radians(pose["euler_deg"]))
+    centre = np.array(pose["position_ned"]) + C_bl @ cam.lever_arm_body
+    xy = cv2.undistortPoints(np.array([[uv]], dtype=np.float64), cam.K, cam.distortion, None,
+                             None, None, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100,
+                                          1e-14)).ravel()
+    ray = C_bl @ cam.C_camera_to_body @ np.array([xy[0], xy[1], 1.0])
+    return centre + (plane_down - centre[2]) / ray[2] * ray
+
+
+# ------------------------------------------------------------ end to end, the real engine
+
+
+@pytest.fixture(scope="module")
+def replayed(live: Live) -> dict[str, Any]:
+    """A session on the real engine, replayed as fast as possible while a client watches."""
+    with httpx.Client(base_url=live.url, timeout=60) as client:
+        r = client.post("/api/sessions", json={"recording": RECORDING, "speed": "max"})
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+    frames, statuses = asyncio.run(_collect(f"{live.ws}/api/sessions/{sid}/stream", _ended))
+    return {"id": sid, "frames": frames, "statuses": statuses}
+
+
+def test_recordings_listing_and_summary(ref_live: Live):
+    with httpx.Client(base_url=ref_live.url) as client:
+        listing = client.get("/api/recordings").json()
+        names = {r["name"]: r for r in listing["recordings"]}
+        assert listing["default"] == RECORDING
+        assert names[RECORDING]["default"] and names[RECORDING]["has_reference"]
+        assert names[RECORDING]["duration_s"] == 12.0
+        assert names["broken"]["problem"].startswith("manifest.json cannot be read")
+        assert "not-a-recording" not in names
+        info = client.get(f"/api/recordings/{RECORDING}").json()
+        assert info["video"]["frame_times"] == 121 and info["reference"]["present"]
+        assert "path" not in info  # the server's file layout stays private
+        assert client.get("/").status_code == 200  # the page, or a JSON pointer to the API
+
+
+def test_stream_overlay_matches_the_pose_of_its_frame(replayed: dict, rec: Recording):
+    frames = replayed["frames"]
+    posed = [f for f in frames if f.header["pose"] is not None]
+    assert len(posed) >= 5, f"{len(frames)} frames, {len(posed)} with a pose"
+    times = [f.header["t"] for f in frames]
+    assert times == sorted(times)
+    image = cv2.imdecode(np.frombuffer(frames[-1].jpeg, np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (600, 960, 3)
+    checked = 0
+    for f in posed[-5:]:
+        h = f.header
+        assert h["processed_at"] <= h["sent_at"] <= f.received + 1.0
+        grid = h["overlay"]["video"]["grid"]
+        nodes, uvs = grid["nodes"]["ned"], grid["nodes"]["uv"]
+        assert len(nodes) > 10 and len(grid["lines"]) > 10
+        for node, uv in zip(nodes, uvs, strict=True):
+            hit = _water_hit(h["pose"], uv, rec, grid["plane_down_m"])
+            assert np.linalg.norm(hit - np.array(node)) < 0.01  # 1 cm
+            checked += 1
+        StreamFrameHeader.model_validate(h)  # the documented schema is the real one
+        plan = h["overlay"]["birdseye"]
+        assert len(plan["prediction"]) == 5 and len(plan["ship"]) == len(rec.hull.outline_body)
+        assert h["overlay"]["berth"]["bow_distance_m"] is not None  # berth line of hull.json
+    assert checked > 100
+    assert any(len(f.header["overlay"]["video"]["points"]["uv"]) for f in posed)
+
+
+def test_pose_history_trajectory_structure_prediction_report(live: Live, replayed: dict):
+    sid = replayed["id"]
+    with httpx.Client(base_url=live.url) as client:
+        base = f"/api/sessions/{sid}"
+        now = client.get(f"{base}/pose").json()
+        assert now["status"]["phase"] in ("fused", "degraded", "aligning")
+        past = client.get(f"{base}/pose", params={"t": 5.0}).json()
+        assert 4.85 <= past["t"] <= 5.0 + 1e-9
+        traj = client.get(f"{base}/trajectory").json()
+        assert traj["count"] == len(traj["t"]) > 50
+        csv = client.get(f"{base}/trajectory", params={"format": "csv"})
+        assert csv.headers["content-type"].startswith("text/csv")
+        lines = csv.text.splitlines()
+        assert lines[0].startswith("t,gpst,north,east,down") and len(lines) == traj["count"] + 1
+        structure = client.get(f"{base}/structure").json()
+        assert structure["count"] == len(structure["points_ned"]) > 20
+        pred = client.get(f"{base}/prediction", params={"seconds": 3}).json()
+        assert [o["seconds"] for o in pred["outlines"]] == [1, 2, 3]
+        report = client.get(f"{base}/report").json()
+        assert report["samples"] == traj["count"]
+        assert 0.0 <= report["horizontal_error_m"]["rms"] < 10.0
+        assert np.isfinite(report["heading_error_deg"]["max"])
+        # out of range and wrongly typed queries
+        for params, status in (({"t": 100.0}, 422), ({"t": -1}, 422), ({"t": "soon"}, 422)):
+            r = client.get(f"{base}/pose", params=params)
+            assert r.status_code == status, (params, r.text)
+        assert "outside the recording" in client.get(f"{base}/pose",
+                                                     params={"t": 100.0}).json()["detail"]
+        assert client.get(f"{base}/prediction", params={"seconds": 100}).status_code == 422
+        assert client.get(f"{base}/trajectory", params={"format": "xml"}).status_code == 422
+
+
+def test_designate_targets_and_berth_line(live: Live, replayed: dict):
+    sid = replayed["id"]
+    last = [f for f in replayed["frames"] if f.header["pose"] is not None][-1].header
+    base = f"/api/sessions/{sid}"
+    with httpx.Client(base_url=live.url) as client:
+        points = last["overlay"]["video"]["points"]
+        assert points["uv"], "no structure point visible in the last frame"
+        k = int(np.argsort(points["distance_m"])[len(points["distance_m"]) // 2])
+        u, v = points["uv"][k]
+        r = client.post(f"{base}/targets", json={"frame_time": last["t"], "u": u, "v": v,
+                                                 "label": "quay"})
+        assert r.status_code == 201, r.text
+        quay = r.json()
+        assert quay["method"] == "structure" and quay["support_points"] >= 1
+        assert quay["frame_time"] == pytest.approx(last["t"], abs=1e-3)
+        assert quay["distance_m"] == pytest.approx(points["distance_m"][k], rel=0.3)
+        water = client.post(f"{base}/targets", json={"u": 480, "v": 590}).json()
+        assert water["method"] == "water-plane"
+        plane = last["overlay"]["video"]["grid"]["plane_down_m"]
+        assert water["position_ned"][2] == pytest.approx(plane, abs=1e-4)
+        assert 0.5 < water["distance_m"] < 10.0
+        sky = client.post(f"{base}/targets", json={"u": 2, "v": 2})
+        assert sky.status_code == 422 and "horizon" in sky.json()["detail"]
+        assert client.post(f"{base}/targets", json={"u": 5000, "v": 1}).status_code == 422
+        assert client.post(f"{base}/targets", json={"u": "left", "v": 1}).status_code == 422
+        listed = client.get(f"{base}/targets").json()["targets"]
+        assert [t["id"] for t in listed] == [quay["id"], water["id"]]
+        detail = client.get(f"{base}/targets/{quay['id']}").json()
+        assert detail["track"] and detail["track"][-1]["distance_m"] > 0
+        assert client.delete(f"{base}/targets/{quay['id']}").status_code == 204
+        gone = client.get(f"{base}/targets/{quay['id']}")
+        assert gone.status_code == 404 and quay["id"] in gone.json()["detail"]
+        # berth line from two plan points, then from two water pixels of a frame
+        berth = client.put(f"{base}/berth-line", json={"ned": [[100, -50], [100, 50]]}).json()
+        assert berth["source"] == "ned" and berth["bow_distance_m"] is not None
+        north = now_north = client.get(f"{base}/pose").json()["position_ned"][0]
+        assert berth["bow_distance_m"] < 100 - now_north + 4 and north
+        image = client.put(f"{base}/berth-line", json={
+            "image_points": [[200, 560], [760, 560]], "frame_time": last["t"]}).json()
+        assert image["source"] == "image" and image["stern_distance_m"] is not None
+        for body in ({"ned": [[0, 0], [0, 1]], "image_points": [[1, 1], [2, 2]]},
+                     {"ned": [[0, 0]]}, {}, {"ned": [[0, 0], [0, 0.01]]}):
+            r = client.put(f"{base}/berth-line", json=body)
+            assert r.status_code == 422, (body, r.text)
+
+
+def test_viser_scene_holds_trajectory_and_structure(live: Live, replayed: dict):
+    with httpx.Client(base_url=live.url) as client:
+        viewer = client.get("/api/viewer").json()
+    assert viewer["available"] and viewer["session"] == replayed["id"]
+    messages = asyncio.run(_viser_scene(viewer["url"].replace("http://", "ws://")))
+    by_name: dict[str, dict] = {}  # scene node → its creation message, updates applied
+    for m in messages:
+        if "props" in m:
+            by_name[m["name"]] = m
+        elif m["type"] == "SceneNodeUpdateMessage" and m["name"] in by_name:
+            by_name[m["name"]]["props"].update(m["updates"])
+        elif m["type"] == "RemoveSceneNodeMessage":
+            by_name.pop(m["name"], None)
+    fused = [m for n, m in by_name.items() if n.startswith("/fused/")]
+    cloud = [m for n, m in by_name.items() if n.startswith("/structure/")]
+    assert fused and all(m["type"] == "LineSegmentsMessage" for m in fused)
+    assert cloud and all(m["type"] == "PointCloudMessage" for m in cloud)
+    segments = sum(len(m["props"]["points"]) for m in fused)
+    assert segments >= 50  # one per fused frame
+    assert sum(len(m["props"]["points"]) for m in cloud) > 20
+    assert by_name["/reference"]["type"] == "LineSegmentsMessage"
+    assert "/ship/camera" in by_name and "/water_grid" in by_name
+    with httpx.Client(base_url=live.url) as client:
+        r = client.put("/api/viewer", json={"session": "nope"})
+        assert r.status_code == 404 and "nope" in r.json()["detail"]
+        r = client.put("/api/viewer", json={"session": replayed["id"]})  # rebuilt at once
+        assert r.status_code == 200 and r.json()["session"] == replayed["id"]
+    again = asyncio.run(_viser_scene(viewer["url"].replace("http://", "ws://")))
+    assert any(m.get("name", "").startswith("/fused/chunk_") for m in again)
+
+
+def test_cli_serve_binds_loopback_and_checks_the_recording(tmp_path: Path, capsys):
+    from backend.cli import build_parser, main
+
+    args = build_parser().parse_args(["serve"])
+    assert (args.host, args.port, args.viser_port, args.recordings_dir) == (
+        "127.0.0.1", 8000, 8080, None)
+    assert main(["serve", str(tmp_path)]) == 2
+    assert "no recording there" in capsys.readouterr().err
+
+
+async def _viser_scene(url: str) -> list[dict]:
+    """The scene a viser client receives on connecting: read the persistent-message backlog
+    (viser's wire format: zstd-compressed msgpack + appended binary buffers) up to the replay
+    marker, decode arrays."""
+    out: list[dict] = []
+    async with websockets.connect(url, subprotocols=[f"viser-v{viser.__version__}"],
+                                  max_size=None) as ws:
+        async with asyncio.timeout(20):
+            while True:
+                raw = await ws.recv()
+                size = int.from_bytes(raw[8:16], "little")
+                payload = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(
+                    raw[16:16 + size], max_output_size=int.from_bytes(raw[:8], "little")))
+                offset = 16 + size
+                buffers = []
+                for length in payload["binaryBufferLengths"]:
+                    offset += (8 - offset % 8) % 8
+                    buffers.append(raw[offset:offset + length])
+                    offset += length
+                for message in payload["messages"]:
+                    out.append(_with_arrays(message, buffers))
+                    if message["type"] == "ReplayDoneMessage":
+                        return out
+
+
+def _with_arrays(obj: Any, buffers: list[bytes]) -> Any:
+    if isinstance(obj, dict):
+        if "__binary_index" in obj:
+            data = np.frombuffer(buffers[obj["__binary_index"]], dtype=obj["dtype"])
+            return data.reshape(obj["shape"]) if "shape" in obj else data
+        return {k: _with_arrays(v, buffers) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_with_arrays(v, buffers) for v in obj]
+    return obj
+
+
+def test_pause_seek_and_delete(live: Live, replayed: dict):
+    sid = replayed["id"]
+    base = f"/api/sessions/{sid}"
+    with httpx.Client(base_url=live.url, timeout=30) as client:
+        assert client.post(f"{base}/control", json={"action": "pause"}).json()["playing"] is False
+        r = client.post(f"{base}/control", json={"action": "seek", "time": 4.0})
+        assert r.status_code == 200 and r.json()["seek_target_s"] == pytest.approx(4.0)
+        status = _wait_status(client, sid, lambda s: s["state"] == "paused")
+        assert status["time_s"] == pytest.approx(4.0, abs=0.011)
+        assert client.get(f"{base}/pose").json()["t"] == pytest.approx(4.0, abs=0.011)
+        assert client.get(f"{base}/trajectory").json()["t"][-1] == pytest.approx(4.0, abs=0.011)
+        time.sleep(0.3)
+        assert client.get(base).json()["time_s"] == status["time_s"]  # paused means paused
+        assert client.get(f"{base}/pose", params={"t": 6.0}).status_code == 409  # not yet
+        for body in ({"action": "seek"}, {"action": "fly"}, {"action": "seek", "time": 500},
+                     {"action": "speed", "speed": 0}, {"action": "speed", "speed": "fast"},
+                     {"action": "play", "volume": 11}):
+            r = client.post(f"{base}/control", json=body)
+            assert r.status_code == 422, (body, r.text)
+            assert r.json()["detail"]
+        assert client.delete(base).status_code == 204
+        r = client.get(base)
+        assert r.status_code == 404 and sid in r.json()["detail"]
+        assert client.post(f"{base}/control", json={"action": "play"}).status_code == 404
+        assert client.delete(base).status_code == 404
+        assert client.get("/api/viewer").json()["session"] is None
+    _frames, statuses = asyncio.run(_collect(f"{live.ws}/api/sessions/{sid}/stream",
+                                             lambda f, s: False, timeout=10))
+    assert statuses[-1]["type"] == "error" and statuses[-1]["status"] == 404
+
+
+# ------------------------------------------------------------------ mechanics (test double)
+
+
+def test_bad_requests_get_precise_errors_and_the_server_keeps_serving(ref_live: Live):
+    with httpx.Client(base_url=ref_live.url) as client:
+        for path, status, words in (
+                ("/api/recordings/..%2Fetc", 400, "path separator"),
+                ("/api/recordings/a%2Fb", 400, "path separator"),
+                ("/api/recordings/%2E%2E", 400, "'..'"),
+                ("/api/recordings/nope", 404, "no recording named 'nope'"),
+                ("/api/recordings/broken", 422, "cannot be read"),
+                ("/api/sessions/nope", 404, "no session 'nope'")):
+            r = client.get(path)
+            assert r.status_code == status, (path, r.text)
+            assert words in r.json()["detail"], (path, r.text)
+        for body, status in (({"recording": "../etc"}, 400), ({"recording": "a/b"}, 400),
+                             ({"recording": "nope"}, 404), ({"recording": RECORDING,
+                                                             "speed": -1}, 422),
+                             ({"recording": RECORDING, "speed": "fast"}, 422),
+                             ({"recording": RECORDING, "colour": "red"}, 422),
+                             ({"recording": RECORDING, "options": {"sky_mask_deg": 95}}, 422),
+                             ({"recording": RECORDING,
+                               "options": {"satellites_keep": ["G5"]}}, 422),
+                             ({"recording": RECORDING,
+                               "options": {"per_receiver_sats": {"7": ["G05"]}}}, 422),
+                             ({}, 422)):
+            r = client.post("/api/sessions", json=body)
+            assert r.status_code == status, (body, r.text)
+            assert r.json()["detail"], body
+        assert client.post("/api/sessions", content=b"{", headers={
+            "content-type": "application/json"}).status_code == 422
+        assert client.get("/api/recordings").status_code == 200  # still serving
+        schema = client.get("/openapi.json").json()["components"]["schemas"]
+        for model in ("SessionCreate", "SessionStatus", "ControlRequest", "PoseResponse",
+                      "TargetCreate", "TargetDetail", "BerthLineRequest", "Report",
+                      "ErrorResponse"):
+            assert model in schema
+        frame_schema = client.get("/api/stream/schema").json()
+        assert "overlay" in frame_schema["properties"]
+
+
+def test_several_clients_slow_client_gets_the_newest_frame(ref_live: Live):
+    with httpx.Client(base_url=ref_live.url) as client:
+        r = client.post("/api/sessions", json={"recording": RECORDING, "speed": 6.0,
+                                               "paused": True,
+                                               "options": {"satellites_keep": ["G05", "G13"],
+                                                           "sky_mask_deg": 15}})
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        assert r.json()["options"]["satellites_keep"] == ["G05", "G13"]
+        url = f"{ref_live.ws}/api/sessions/{sid}/stream"
+
+        async def watch() -> list[tuple[list[Frame], list[dict]]]:
+            clients = [_collect(url, _ended, timeout=30),
+                       _collect(url, _ended, timeout=30, delay=0.3),
+                       _collect(url, lambda f, s: len(f) >= 3, timeout=30)]  # leaves early
+            tasks = [asyncio.create_task(c) for c in clients]
+            await asyncio.sleep(0.5)
+            assert client.get(f"/api/sessions/{sid}").json()["clients"] == 3
+            client.post(f"/api/sessions/{sid}/control", json={"action": "play"})
+            return await asyncio.gather(*tasks)
+
+        (fast, _), (slow, _), (early, _) = asyncio.run(watch())
+        assert len(fast) >= 80  # ~all 121 frames at 6x (fewer when the CPUs are busy)
+        assert len(early) == 3
+        assert 5 <= len(slow) < len(fast) / 2  # skipped frames rather than queue them
+        late = [f.received - f.header["processed_at"] for f in slow]
+        # newest frame: bounded by the client's own work per frame (one frame in flight while
+        # it works on the other), not growing — without flow control it grows by ~0.3 s/frame
+        assert max(late) < 0.9, late
+        assert client.get(f"/api/sessions/{sid}").json()["clients"] == 0  # all gone: free
+        assert client.delete(f"/api/sessions/{sid}").status_code == 204
+
+
+def test_report_needs_a_reference(ref_live: Live):
+    with httpx.Client(base_url=ref_live.url) as client:
+        listing = {r["name"]: r for r in client.get("/api/recordings").json()["recordings"]}
+        assert listing["no-reference"]["has_reference"] is False
+        r = client.post("/api/sessions", json={"recording": "no-reference", "paused": True,
+                                               "body_height_m": 0.6})
+        assert r.status_code == 201, r.text
+        assert r.json()["water_level"] == {"down_m": 0.6, "source": "request"}
+        sid = r.json()["id"]
+        report = client.get(f"/api/sessions/{sid}/report")
+        assert report.status_code == 404
+        assert "no reference trajectory" in report.json()["detail"]
+        status = _wait_status(client, sid, lambda st: st["state"] == "paused")
+        assert status["time_s"] == 0.0 and status["frames_processed"] == 1  # the first frame
+        assert client.delete(f"/api/sessions/{sid}").status_code == 204
+
+
+def test_session_limit(ref_live: Live):
+    with httpx.Client(base_url=ref_live.url) as client:
+        for left in client.get("/api/sessions").json()["sessions"]:  # from failed tests
+            client.delete(f"/api/sessions/{left['id']}")
+        ids = []
+        try:
+            for _ in range(4):
+                r = client.post("/api/sessions", json={"recording": RECORDING, "paused": True})
+                assert r.status_code == 201
+                ids.append(r.json()["id"])
+            r = client.post("/api/sessions", json={"recording": RECORDING})
+            assert r.status_code == 429 and "limit" in r.json()["detail"]
+            assert len(client.get("/api/sessions").json()["sessions"]) == 4
+        finally:
+            for sid in ids:
+                client.delete(f"/api/sessions/{sid}")
