@@ -565,11 +565,12 @@ def test_several_clients_slow_client_gets_the_newest_frame(ref_live: Live):
         (fast, _), (slow, _), (early, _) = asyncio.run(watch())
         assert len(fast) >= 80  # ~all 121 frames at 6x (fewer when the CPUs are busy)
         assert len(early) == 3
-        assert 5 <= len(slow) < len(fast) / 2  # skipped frames rather than queue them
+        assert 8 <= len(slow) < len(fast) / 2  # skipped frames rather than queue them
         late = [f.received - f.header["processed_at"] for f in slow]
-        # newest frame: bounded by the client's own work per frame (one frame in flight while
-        # it works on the other), not growing — without flow control it grows by ~0.3 s/frame
-        assert max(late) < 0.9, late
+        # Newest frame: bounded by the client's own work per frame (one frame in flight while
+        # it works on the other), not growing. Without flow control it grows by ~0.3 s/frame,
+        # past 2.4 s after 8 frames; the bound leaves room for a busy CI machine.
+        assert max(late) < 2.0, late
         assert client.get(f"/api/sessions/{sid}").json()["clients"] == 0  # all gone: free
         assert client.delete(f"/api/sessions/{sid}").status_code == 204
 
