@@ -60,13 +60,14 @@ points within ``QUAY_BAND_M`` of the quay edge (the polyline through the scene p
 from __future__ import annotations
 
 import argparse
+import inspect
 import itertools
 import json
 import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -113,6 +114,7 @@ class _Track:
     wall_s: float
     timing_ms: dict[str, float]
     structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    structure_raw: np.ndarray | None = None  # unrefined points, when the pipeline refines
 
 
 # ------------------------------------------------------------------------------ replay
@@ -207,6 +209,8 @@ class _Replay:
         track = _Track(label=label, time=self.sample_t, position=pos, velocity=vel, euler=eul,
                        C=C, scale=scale, origin_time=f.origin_time, wall_s=wall,
                        timing_ms=f.timing(), structure=f.structure() if structure else None)
+        if structure and "refined" in inspect.signature(f.structure).parameters:
+            track.structure_raw = f.structure(refined=False)[0]
         self.runs[label] = track
         started = "never started" if f.origin_time is None else \
             f"origin at +{f.origin_time - self.start:.1f} s"
@@ -370,9 +374,10 @@ def _velocity_dop(los: dict[float, dict[str, np.ndarray]], subset: Sequence[str]
     return float(np.mean(values)) if values else math.inf
 
 
-def _choose_subsets(rp: _Replay, t0: float, sizes: Sequence[int]
+def _choose_subsets(rp: _Replay, t0: float
                     ) -> tuple[dict[int, list[str]], dict[str, dict[str, float]],
                                dict[int, float]]:
+    """The best 5 satellites and, for 4…1, the best subsets of those 5 (and 0: none)."""
     from estimator.cpp import SAME_CARRIER_SYSTEMS
 
     tracked = [s for s in _tracked(rp) if s[0] in SAME_CARRIER_SYSTEMS]
@@ -384,9 +389,7 @@ def _choose_subsets(rp: _Replay, t0: float, sizes: Sequence[int]
                 key=lambda c: (_velocity_dop(los, c), c), default=())
     chosen: dict[int, list[str]] = {}
     dops: dict[int, float] = {}
-    for n in sizes:
-        if n > len(best5):
-            continue
+    for n in range(len(best5), -1, -1):
         if n == 0:
             chosen[0], dops[0] = [], math.inf
             continue
@@ -430,15 +433,16 @@ class _OneSatelliteHeading:
         if self.fix is None or compass.position is None:
             self.reason = "the GNSS compass holds no fix with delays at the window start"
             return
-        # Yaw rate from the calibrated gyro (roll/pitch of the INS); its bias over the last
-        # 20 s of the initialisation against the fused heading change.
+        # Yaw rate from the calibrated gyro (roll/pitch of the INS); its bias against the fused
+        # heading change over the second half of the initialisation (at most 20 s): the first
+        # seconds hold the convergence of the fused heading itself.
         G, _ = calibration_matrices(rec.calibration.imu)
         w = rp.gyro @ G.T
         eul = self.attitudes(rp.imu_t)
         self.yaw_rate = (w[:, 1] * np.sin(eul[:, 0]) + w[:, 2] * np.cos(eul[:, 0])) / np.maximum(
             np.cos(eul[:, 1]), 1e-6)
         self.dt = np.diff(rp.imu_t, prepend=rp.imu_t[0])
-        t_a = max(main.origin_time, t0 - 20.0)
+        t_a = max(0.5 * (main.origin_time + t0), t0 - 20.0)
         span = (rp.imu_t > t_a) & (rp.imu_t <= t0)
         yaw = np.unwrap(main.euler[self.ok, 2])
         turn = np.interp(t0, main.time[self.ok], yaw) - np.interp(t_a, main.time[self.ok], yaw)
@@ -573,8 +577,6 @@ class _OneSatelliteHeading:
 
 
 def _structure(rp: _Replay, main: _Track) -> dict[str, Any]:
-    from scipy.spatial import cKDTree
-
     out: dict[str, Any] = {"points": 0, "matched": 0, "median_m": None, "p90_m": None,
                            "gate": f"max({MATCH_GATE_M:g} m, {100 * MATCH_GATE_FRACTION:g} % of "
                                    "the range)", "within_30m": None, "bands": []}
@@ -590,7 +592,26 @@ def _structure(rp: _Replay, main: _Track) -> dict[str, Any]:
     k = ok[-1]
     cam = main.position[k] + main.C[k] @ np.asarray(rp.rec.calibration.camera.lever_arm_body)
     origin = rp.ref.interpolate(main.origin_time)[0]
-    d, _ = cKDTree(np.asarray(true, float) - origin).query(pts)
+    true_w = np.asarray(true, float) - origin  # the same translation as the trajectories
+    quay = _quay_line(rp, origin)
+    scores, d = _point_scores(pts, true_w, cam, quay)
+    out.update(scores)
+    out["camera_end_ned"] = cam.tolist()
+    if main.structure_raw is not None and len(main.structure_raw):
+        # The same points before the pipeline's landmark refinement, for comparison.
+        raw, _ = _point_scores(main.structure_raw, true_w, cam, quay)
+        out["unrefined"] = {k: raw[k] for k in ("median_m", "p90_m", "within_30m",
+                                                "quay_edge")}
+    out["_arrays"] = (pts, d, cam, quay)  # for the plots; dropped from the JSON
+    return out
+
+
+def _point_scores(pts: np.ndarray, true: np.ndarray, cam: np.ndarray,
+                  quay: np.ndarray | None) -> tuple[dict[str, Any], np.ndarray]:
+    """Nearest-true-point statistics by range band and the quay-edge distances."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(true).query(pts)
     rng = np.linalg.norm(pts - cam, axis=1)
     matched = d <= np.maximum(MATCH_GATE_M, MATCH_GATE_FRACTION * rng)
 
@@ -600,12 +621,10 @@ def _structure(rp: _Replay, main: _Track) -> dict[str, Any]:
                 "median_m": float(np.median(d[m])) if m.any() else None,
                 "p90_m": float(np.percentile(d[m], 90)) if m.any() else None}
 
-    out.update(stats(np.ones(len(pts), bool)))
+    out: dict[str, Any] = stats(np.ones(len(pts), bool))
     out["within_30m"] = stats(rng < 30.0)
     out["bands"] = [{"range_m": [lo, None if math.isinf(hi) else hi],
                      **stats((rng >= lo) & (rng < hi))} for lo, hi in BANDS_M]
-    out["camera_end_ned"] = cam.tolist()
-    quay = _quay_line(rp, origin)
     out["quay_edge"] = None
     if quay is not None:
         dq = _distance_to_polyline(pts[:, :2], quay[:, :2])
@@ -618,8 +637,7 @@ def _structure(rp: _Replay, main: _Track) -> dict[str, Any]:
 
         out["quay_edge"] = {"band_m": QUAY_BAND_M, "all": qstats(near),
                             "within_30m": qstats(near & (rng < 30.0))}
-    out["_arrays"] = (pts, d, matched, cam, quay)  # for the plots; dropped from the JSON
-    return out
+    return out, d
 
 
 def _quay_line(rp: _Replay, origin: np.ndarray) -> np.ndarray | None:
@@ -651,12 +669,14 @@ def _distance_to_polyline(p: np.ndarray, line: np.ndarray) -> np.ndarray:
 
 def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None = None,
                       subset_sizes: Sequence[int] = SUBSET_SIZES, clock_drift: bool = True,
-                      single_satellite: bool = True, without_cpp: bool = True,
+                      single_satellites: int = 5, without_cpp: bool = True,
                       plots_dir: str | Path | None = None, progress: bool = True
                       ) -> dict[str, Any]:
     """The thesis' experiments on a loaded recording with a reference (see the module
-    docstring). ``end_s``: replay only the first seconds; the other switches drop parts (the
-    keys stay, empty) to make a quick run."""
+    docstring). ``end_s``: replay only the first seconds; ``subset_sizes`` (tables 18–20),
+    ``clock_drift`` (table 21), ``single_satellites`` (how many of the best five for fig. 14)
+    and ``without_cpp`` (the literal ``use_cpp=False`` runs) trim the work for a quick run (the
+    keys stay, empty)."""
     from estimator.pipeline import FusionOptions
 
     if rec.reference is None:
@@ -671,8 +691,12 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
     rp.run_vo()
     n_window = int(np.sum(rp.sample_t >= t0 - 1e-6))
 
+    # The runs scored on the trajectory only skip the port-structure refinement (a consumer of
+    # the fused poses, not an input of the EKF) when this pipeline has it: ~1 ms per frame.
+    lean = {"landmarks": None} if "landmarks" in {f.name for f in fields(FusionOptions)} else {}
+
     def keep(**kw: Any) -> Any:
-        return FusionOptions(keep_after_s=init_s, **kw)
+        return FusionOptions(keep_after_s=init_s, **lean, **kw)
 
     main = rp.fuse("INS+VO+CPP", FusionOptions(keep_after_s=init_s), structure=True)
     if main.origin_time is None:
@@ -697,14 +721,16 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
         "methods": methods,
     }
     if without_cpp:
-        lit = {"INS": rp.fuse("INS (use_cpp=False)", FusionOptions(use_vo=False, use_cpp=False)),
-               "INS+VO": rp.fuse("INS+VO (use_cpp=False)", FusionOptions(use_cpp=False))}
+        lit = {"INS": rp.fuse("INS (use_cpp=False)",
+                              FusionOptions(use_vo=False, use_cpp=False, **lean)),
+               "INS+VO": rp.fuse("INS+VO (use_cpp=False)",
+                                 FusionOptions(use_cpp=False, **lean))}
         report["methods_without_cpp_after_startup"] = {
             k: _scores(_errors(rp, tr, t0), n_window) for k, tr in lit.items()}
         for k, tr in lit.items():
             errors[f"{k} (no CPP after start-up)"] = _errors(rp, tr, t0)
 
-    chosen, info, dops = _choose_subsets(rp, t0, subset_sizes)
+    chosen, info, dops = _choose_subsets(rp, t0)
     subsets = []
     for n in subset_sizes:
         if n not in chosen:
@@ -717,7 +743,8 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
                          keep(satellites_keep=sats, tightly_coupled=tight))
             sc = _scores(_errors(rp, tr, t0), n_window)
             entry[mode] = {k: sc[k] for k in ("velocity_std_mps", "horizontal_std_m",
-                                              "heading_std_deg", "horizontal_max_m")}
+                                              "heading_std_deg", "horizontal_max_m",
+                                              "heading_rms_deg")}
         subsets.append(entry)
     report["satellite_subsets"] = subsets
     report["satellites_tracked"] = {s: info[s] for s in sorted(info)}
@@ -734,12 +761,13 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
             errors[f"per-receiver sats, {name} clock"] = err = _errors(rp, tr, t0)
             sc = _scores(err, n_window)
             cd[name] = {k: sc[k] for k in ("horizontal_std_m", "horizontal_max_m",
-                                           "velocity_std_mps", "heading_std_deg")}
+                                           "velocity_std_mps", "heading_std_deg",
+                                           "heading_rms_deg")}
         report["clock_drift"] = cd
 
     report["single_satellite_heading"] = {}
-    five = chosen.get(5) or chosen.get(max(chosen, default=0), [])
-    if single_satellite and five:
+    five = chosen[max(chosen)][:max(single_satellites, 0)]
+    if five:
         pipeline = {s: rp.fuse(f"1 sat tight {s}", keep(satellites_keep=[s])) for s in five}
         report["single_satellite_heading"] = _OneSatelliteHeading(rp, main, t0, five).report(
             five, pipeline)
@@ -837,8 +865,8 @@ def _plots(out: Path, rp: _Replay, runs: dict[str, _Track], errors: dict[str, An
     ax.axvline(t0, color="k", ls="--", lw=0.8)
     ax.set_xlabel("time since the recording start (s)")
     ax.set_ylabel("heading error (deg)")
-    ax.set_ylim(-3, 3)
-    ax.set_title("heading error (clipped to ±3°)")
+    ax.set_ylim(-1.2, 1.2)
+    ax.set_title("heading error (clipped to ±1.2°)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     written.append(_save(fig, out / "heading_error.png"))
@@ -846,7 +874,7 @@ def _plots(out: Path, rp: _Replay, runs: dict[str, _Track], errors: dict[str, An
     # Port structure from above.
     arrays = report["structure"].get("_arrays")
     if arrays is not None:
-        pts, d, _, cam, _ = arrays
+        pts, d, cam, _ = arrays
         fig, axes = plt.subplots(1, 2, figsize=(15, 7))
         for ax, span in zip(axes, (None, 30.0), strict=True):
             if true is not None:
@@ -880,21 +908,25 @@ def _plots(out: Path, rp: _Replay, runs: dict[str, _Track], errors: dict[str, An
     # Fig. 14: heading σ from one satellite, per baseline vs all six.
     ss = report.get("single_satellite_heading") or {}
     if ss.get("satellites"):
-        fig, ax = plt.subplots(figsize=(10, 5))
-        names = list(ss["satellites"][0]["heading_std_deg"])
+        sats = ss["satellites"]
+        names = list(sats[0]["heading_std_deg"])
         width = 0.8 / len(names)
-        for k, name in enumerate(names):
-            vals = [e["heading_std_deg"].get(name) for e in ss["satellites"]]
-            xs = np.arange(len(vals)) + k * width
-            ax.bar(xs, [np.nan if v is None else v for v in vals], width,
-                   label=name if name == "all six" else f"baseline {name}")
-        ax.set_xticks(np.arange(len(ss["satellites"])) + 0.4 - width / 2)
-        ax.set_xticklabels([e["sat"] for e in ss["satellites"]])
-        ax.set_yscale("log")
-        ax.set_ylabel("heading σ (deg)")
-        ax.set_title("heading from one satellite: single baselines vs all six (fig. 14)")
-        ax.grid(alpha=0.3, axis="y", which="both")
-        ax.legend(fontsize=7, ncol=4)
+        fig, axes = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
+        for ax, key, title in zip(axes, ("snapshot_std_deg", "heading_std_deg"), (
+                "single-epoch heading from the single differences (no gyro)",
+                "filtered with the gyro over the window"), strict=True):
+            for k, name in enumerate(names):
+                vals = [e[key].get(name) for e in sats]
+                ax.bar(np.arange(len(vals)) + k * width, [np.nan if v is None else v
+                                                          for v in vals], width,
+                       label=name if name == "all six" else f"baseline {name}")
+            ax.set_yscale("log")
+            ax.set_ylabel("heading σ (deg)")
+            ax.set_title(f"one satellite, single baselines vs all six (fig. 14): {title}")
+            ax.grid(alpha=0.3, axis="y", which="both")
+        axes[1].set_xticks(np.arange(len(sats)) + 0.4 - width / 2)
+        axes[1].set_xticklabels([f"{e['sat']} ({_f(e['elevation_deg'], '.0f')}°)" for e in sats])
+        axes[0].legend(fontsize=7, ncol=4)
         written.append(_save(fig, out / "single_satellite_heading.png"))
     return written
 
@@ -944,7 +976,8 @@ def format_replay_report(report: dict[str, Any]) -> str:
         lines += ["", "tables 18-20  satellites kept after the initialisation "
                       "(loose | tight coupling of the velocity)",
                   f"  {'n':>2} {'satellites':<24} {'HDOP':>6}  {'vel σ (m/s)':>15}  "
-                  f"{'traj σ (m)':>15}  {'traj max (m)':>15}  {'heading σ (deg)':>15}"]
+                  f"{'traj σ (m)':>15}  {'traj max (m)':>15}  {'heading σ (deg)':>15}  "
+                  f"{'hdg rms (deg)':>15}"]
         for s in subsets:
             lo, ti = s["loose"], s["tight"]
             lines.append(
@@ -953,18 +986,19 @@ def format_replay_report(report: dict[str, Any]) -> str:
                 f"{_f(lo['velocity_std_mps'], '7.3f')}|{_f(ti['velocity_std_mps'], '<7.3f')}  "
                 f"{_f(lo['horizontal_std_m'], '7.3f')}|{_f(ti['horizontal_std_m'], '<7.3f')}  "
                 f"{_f(lo['horizontal_max_m'], '7.3f')}|{_f(ti['horizontal_max_m'], '<7.3f')}  "
-                f"{_f(lo['heading_std_deg'], '7.3f')}|{_f(ti['heading_std_deg'], '<7.3f')}")
+                f"{_f(lo['heading_std_deg'], '7.3f')}|{_f(ti['heading_std_deg'], '<7.3f')}  "
+                f"{_f(lo['heading_rms_deg'], '7.3f')}|{_f(ti['heading_rms_deg'], '<7.3f')}")
     cd = report.get("clock_drift") or {}
     if cd:
         per = ", ".join(f"rx{int(i) + 1} {s}" for i, s in cd["satellite_per_receiver"].items())
         lines += ["", f"table 21  one satellite per receiver ({per})",
-                  "  clock drift     std (m)   max (m)  vel σ (m/s)  hdg σ (deg)"]
+                  "  clock drift     std (m)   max (m)  vel σ (m/s)  hdg σ/rms (deg)"]
         for name in ("separate", "common"):
             m = cd[name]
             lines.append(f"  {name:<12} {_f(m['horizontal_std_m'], '8.3f')}  "
                          f"{_f(m['horizontal_max_m'], '8.3f')}  "
                          f"{_f(m['velocity_std_mps'], '11.3f')}  "
-                         f"{_f(m['heading_std_deg'], '11.3f')}")
+                         f"{_f(m['heading_std_deg'], '9.3f')}/{_f(m['heading_rms_deg'], '.3f')}")
     ss = report.get("single_satellite_heading") or {}
     if ss.get("satellites"):
         names = list(ss["satellites"][0]["heading_std_deg"])
@@ -991,6 +1025,13 @@ def format_replay_report(report: dict[str, Any]) -> str:
                      f"{_f(b['median_m'], '10.3f')}  {_f(b['p90_m'], '7.3f')}")
     lines.append(f"  {'all':<22} {st['points']:7d}  {st['matched']:7d}  "
                  f"{_f(st['median_m'], '10.3f')}  {_f(st['p90_m'], '7.3f')}")
+    raw = st.get("unrefined")
+    if raw:
+        rq = (raw.get("quay_edge") or {}).get("within_30m") or {}
+        lines.append(f"  before the landmark refinement: all median {_f(raw['median_m'])} m, "
+                     f"p90 {_f(raw['p90_m'])} m; within 30 m median "
+                     f"{_f(raw['within_30m']['median_m'])} m; quay edge within 30 m median "
+                     f"{_f(rq.get('median_m'))} m")
     q = st.get("quay_edge")
     if q:
         for name, b in (("within 30 m", q["within_30m"]), ("all", q["all"])):

@@ -1,0 +1,127 @@
+"""The ``replay --report`` experiments (backend/reports/replay.py) on the first 40 s of the
+bundled small-boat recording, 20 s of initialisation: one report per module, checked against
+tolerances a broken fusion fails; plus the bad inputs through the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from backend.cli import main
+from backend.reports.replay import _json_safe, format_replay_report, replay_report
+from recordings.format import load
+
+BUNDLED = Path(__file__).resolve().parent.parent / "recordings" / "default"
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    plots = tmp_path_factory.mktemp("replay-plots")
+    rep = replay_report(BUNDLED, init_s=20.0, end_s=40.0, subset_sizes=(3, 0),
+                        single_satellites=2, without_cpp=False, plots_dir=plots,
+                        progress=False)
+    rep["_plots_dir"] = str(plots)
+    return rep
+
+
+def test_json_shape_is_stable_and_strict(report: dict) -> None:
+    doc = _json_safe({k: v for k, v in report.items() if k != "_plots_dir"})
+    json.dumps(doc, allow_nan=False)
+    for key in ("recording", "methods", "satellite_subsets", "clock_drift",
+                "single_satellite_heading", "structure", "realtime_factor", "timing_ms"):
+        assert key in doc, key
+    assert list(doc["methods"]) == ["INS", "VO", "INS+VO", "INS+VO+CPP"]
+    for m in doc["methods"].values():
+        assert {"horizontal_std_m", "horizontal_max_m"} <= set(m)
+    for s in doc["satellite_subsets"]:
+        assert {"n_satellites", "satellites", "loose", "tight"} <= set(s)
+        assert len(s["satellites"]) == s["n_satellites"]
+        for mode in ("loose", "tight"):
+            assert {"velocity_std_mps", "horizontal_std_m", "heading_std_deg"} <= set(s[mode])
+    assert {"common", "separate"} <= set(doc["clock_drift"])
+    assert {"bands", "median_m", "p90_m"} <= set(doc["structure"])
+    assert len(doc["structure"]["bands"]) == 4
+    assert doc["realtime_factor"] > 0 and doc["timing_ms"]["vo"] > 0
+    assert doc["window_s"] == pytest.approx([20.0, 40.0], abs=1.0)
+
+
+def test_fusion_beats_its_parts(report: dict) -> None:
+    m = report["methods"]
+    full = m["INS+VO+CPP"]
+    assert full["coverage"] > 0.95
+    assert full["horizontal_std_m"] < 0.05 and full["horizontal_max_m"] < 0.2
+    assert full["heading_std_deg"] < 0.3
+    # Without carrier phase after the initialisation the INS drifts; the VO holds it better.
+    assert m["INS"]["horizontal_max_m"] > 5 * full["horizontal_max_m"]
+    assert m["INS"]["horizontal_std_m"] > 5 * full["horizontal_std_m"]
+    assert m["VO"]["coverage"] > 0.8 and m["VO"]["horizontal_std_m"] is not None
+    assert m["INS+VO"]["horizontal_max_m"] < m["INS"]["horizontal_max_m"]
+
+
+def test_satellite_subsets_and_clock_drift(report: dict) -> None:
+    by_n = {s["n_satellites"]: s for s in report["satellite_subsets"]}
+    assert set(by_n) == {3, 0}
+    three, none = by_n[3], by_n[0]
+    assert len(set(three["satellites"])) == 3 and none["satellites"] == []
+    # Three satellites: the η rows still give a velocity, the loose one cannot (< 4 per
+    # receiver), so the tight trajectory is far better than dead reckoning.
+    assert three["tight"]["horizontal_std_m"] < 0.5 * none["tight"]["horizontal_std_m"]
+    assert three["tight"]["velocity_std_mps"] < three["loose"]["velocity_std_mps"]
+    cd = report["clock_drift"]
+    assert len(set(cd["satellite_per_receiver"].values())) == 4
+    assert cd["common"]["horizontal_std_m"] < 0.1
+    assert cd["common"]["horizontal_std_m"] < 0.3 * cd["separate"]["horizontal_std_m"]
+
+
+def test_single_satellite_heading(report: dict) -> None:
+    ss = report["single_satellite_heading"]
+    assert len(ss["satellites"]) == 2  # the first two of the best five
+    for e in ss["satellites"]:
+        assert set(e["heading_std_deg"]) == {"all six", "0-1", "0-2", "0-3", "1-2", "1-3", "2-3"}
+        assert e["updates"]["all six"] > 10
+        assert e["heading_std_deg"]["all six"] < 0.5
+        assert e["pipeline_all_baselines_std_deg"] < 0.5
+    # One epoch, one satellite: all six baselines beat the worst single one.
+    assert ss["worst_all_six_snapshot_std_deg"] < ss["worst_single_baseline_snapshot_std_deg"]
+
+
+def test_structure_and_plots(report: dict) -> None:
+    st = report["structure"]
+    assert st["points"] > 100 and st["matched"] > 20
+    assert sum(b["points"] for b in st["bands"]) == st["points"]
+    assert st["median_m"] < 2.0
+    assert "_arrays" not in st
+    plots = Path(report["_plots_dir"])
+    for name in ("trajectories", "horizontal_error", "heading_error", "structure"):
+        png = plots / f"{name}.png"
+        assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
+    text = format_replay_report(report)
+    for needle in ("table 17", "tables 18-20", "table 21", "fig. 14", "structure",
+                   "realtime factor"):
+        assert needle in text
+
+
+def test_recording_without_reference_is_an_error(tmp_path: Path, capsys) -> None:
+    rec = tmp_path / "no-reference"
+    rec.mkdir()
+    for item in BUNDLED.iterdir():
+        if item.name not in ("manifest.json", "reference"):
+            (rec / item.name).symlink_to(item)
+    manifest = json.loads((BUNDLED / "manifest.json").read_text())
+    manifest["files"]["reference"] = manifest["files"]["scene_points"] = None
+    (rec / "manifest.json").write_text(json.dumps(manifest))
+    assert load(rec, load_gnss=False).reference is None
+    assert main(["replay", str(rec), "--report", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "no reference trajectory" in err
+    # Without --report there is nothing to do: a clear error too.
+    assert main(["replay", str(BUNDLED)]) == 2
+    assert "--report" in capsys.readouterr().err
+    assert main(["replay", str(tmp_path / "missing"), "--report", "--quiet"]) == 2
+
+
+def test_window_beyond_the_recording_is_an_error() -> None:
+    with pytest.raises(ValueError, match="no window"):
+        replay_report(BUNDLED, init_s=20.0, end_s=15.0, progress=False)
