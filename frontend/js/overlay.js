@@ -1,0 +1,256 @@
+// Drawing of one video frame and its overlay. Everything on the video arrives already projected
+// to image pixels for that very frame, so drawing is a scale + offset away: nothing here does
+// geometry, which keeps the picture and the lines in step by construction.
+
+import { colors } from "./theme.js";
+
+/** Letterbox the source image (w x h px) into the canvas's CSS box; sizes the backing store for
+ *  the device pixel ratio. Returns the image→CSS-pixel mapping shared by both canvases. */
+export function fitCanvas(canvas, srcW, srcH) {
+  const dpr = window.devicePixelRatio || 1;
+  const cssW = canvas.clientWidth;
+  const cssH = canvas.clientHeight;
+  const pw = Math.max(1, Math.round(cssW * dpr));
+  const ph = Math.max(1, Math.round(cssH * dpr));
+  if (canvas.width !== pw || canvas.height !== ph) {
+    canvas.width = pw;
+    canvas.height = ph;
+  }
+  const scale = Math.min(cssW / srcW, cssH / srcH);
+  return {
+    dpr, scale, srcW, srcH,
+    ox: (cssW - srcW * scale) / 2,
+    oy: (cssH - srcH * scale) / 2,
+  };
+}
+
+/** Image pixel (u, v) → CSS pixel in the canvas. */
+export function toCss(view, u, v) {
+  return [view.ox + u * view.scale, view.oy + v * view.scale];
+}
+
+/** CSS pixel in the canvas → image pixel, or null outside the picture. */
+export function toImage(view, x, y) {
+  const u = (x - view.ox) / view.scale;
+  const v = (y - view.oy) / view.scale;
+  if (u < 0 || v < 0 || u > view.srcW || v > view.srcH) return null;
+  return [u, v];
+}
+
+export function drawVideo(canvas, bitmap, view) {
+  const ctx = canvas.getContext("2d");
+  ctx.setTransform(1, 0, 0, 1, 0, 0);
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  ctx.setTransform(view.dpr, 0, 0, view.dpr, 0, 0);
+  ctx.drawImage(bitmap, view.ox, view.oy, view.srcW * view.scale, view.srcH * view.scale);
+}
+
+/**
+ * Overlay of one frame.
+ * @param {object} frame   the stream header of the frame (frame.overlay may be null)
+ * @param {object} opts    {predictSeconds, trusted, picks: [[u,v]...] pending berth clicks}
+ */
+export function drawOverlay(canvas, frame, view, opts) {
+  const ctx = canvas.getContext("2d");
+  const c = colors();
+  ctx.setTransform(1, 0, 0, 1, 0, 0);
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const ov = frame?.overlay;
+  if (!ov) return;
+  // image pixels → device pixels in one transform; line widths are divided by the scale so
+  // they stay the same on screen whatever the window size.
+  ctx.setTransform(view.dpr * view.scale, 0, 0, view.dpr * view.scale,
+    view.dpr * view.ox, view.dpr * view.oy);
+  const px = 1 / view.scale;
+  ctx.save();
+  ctx.beginPath();
+  ctx.rect(0, 0, view.srcW, view.srcH);
+  ctx.clip();
+
+  // Untrusted fusion: the same drawing in grey, so nobody steers by it (status.js says why).
+  if (!opts.trusted) ctx.filter = "grayscale(1)";
+
+  drawGrid(ctx, ov.video.grid, opts.trusted ? c.grid : c.gridOff, px);
+  drawPoints(ctx, ov.video.points, px, c);
+  drawPrediction(ctx, ov.video.prediction, opts.predictSeconds, c, px);
+  if (ov.berth?.polylines) drawBerth(ctx, ov.berth.polylines, c, px);
+  ctx.restore();
+
+  // labels are drawn in CSS pixels so text is crisp and the same size at any window size;
+  // the targets' distances last, on top of everything else
+  ctx.setTransform(view.dpr, 0, 0, view.dpr, 0, 0);
+  if (!opts.trusted) ctx.filter = "grayscale(1)";
+  if (ov.berth?.polylines?.length) labelBerth(ctx, ov.berth.polylines, view, c);
+  labelPrediction(ctx, ov.video.prediction, opts.predictSeconds, view, c);
+  for (const p of opts.picks || []) drawPick(ctx, toCss(view, p[0], p[1]), c);
+  for (const t of ov.targets || []) {
+    if (t.visible && t.uv) {
+      drawTarget(ctx, toCss(view, t.uv[0], t.uv[1]), t, c, opts.trusted, view.ox + view.srcW * view.scale);
+    }
+  }
+  ctx.filter = "none";
+}
+
+/** "N s" beside the bow of each predicted outline, skipping labels that would overlap. */
+function labelPrediction(ctx, prediction, maxSeconds, view, c) {
+  let last = null;
+  for (const p of (prediction || []).filter((q) => q.seconds <= maxSeconds)) {
+    const pts = p.polylines.flat();
+    if (!pts.length) continue;
+    const apex = pts.reduce((a, b) => (b[1] < a[1] ? b : a)); // the bow is the far (top) end
+    const [x, y] = toCss(view, apex[0], apex[1]);
+    if (last && Math.abs(y - last) < 16) continue;
+    last = y;
+    ctx.globalAlpha = 0.85;
+    label(ctx, x + 8, y - 2, `${p.seconds} s`, c.predict, c.targetBg, 11);
+    ctx.globalAlpha = 1;
+  }
+}
+
+function strokePolylines(ctx, lines) {
+  ctx.beginPath();
+  for (const line of lines) {
+    if (!line.length) continue;
+    ctx.moveTo(line[0][0], line[0][1]);
+    for (let i = 1; i < line.length; i++) ctx.lineTo(line[i][0], line[i][1]);
+  }
+  ctx.stroke();
+}
+
+function drawGrid(ctx, grid, color, px) {
+  if (!grid?.lines?.length) return;
+  ctx.strokeStyle = color;
+  ctx.lineWidth = 1.6 * px;
+  strokePolylines(ctx, grid.lines);
+}
+
+function drawPoints(ctx, points, px, c) {
+  if (!points?.uv?.length) return;
+  const r = 2.6 * px;
+  ctx.globalAlpha = c.pointAlpha;
+  // a dark rim keeps yellow and cyan points visible on bright quay walls
+  ctx.strokeStyle = "rgba(0,0,0,0.55)";
+  ctx.lineWidth = 0.8 * px;
+  for (let i = 0; i < points.uv.length; i++) {
+    const [u, v] = points.uv[i];
+    ctx.fillStyle = points.color[i];
+    ctx.beginPath();
+    ctx.arc(u, v, r, 0, 2 * Math.PI);
+    ctx.fill();
+    ctx.stroke();
+  }
+  ctx.globalAlpha = 1;
+}
+
+/** Predicted outlines 1..N s ahead, fading with time: the nearest future is the surest. */
+function drawPrediction(ctx, prediction, maxSeconds, c, px) {
+  if (!prediction?.length) return;
+  const shown = prediction.filter((p) => p.seconds <= maxSeconds);
+  const n = shown.length;
+  ctx.strokeStyle = c.predict;
+  ctx.setLineDash([]);
+  shown.forEach((p, i) => {
+    ctx.globalAlpha = n > 1 ? 1 - 0.7 * (i / (n - 1)) : 1;
+    ctx.lineWidth = (2.6 - 1.2 * (n > 1 ? i / (n - 1) : 0)) * px;
+    strokePolylines(ctx, p.polylines);
+  });
+  ctx.globalAlpha = 1;
+}
+
+function drawBerth(ctx, lines, c, px) {
+  ctx.strokeStyle = c.berth;
+  ctx.lineWidth = 3.5 * px;
+  strokePolylines(ctx, lines);
+}
+
+function labelBerth(ctx, lines, view, c) {
+  // at the left end of the visible line, clear of the targets that sit on the quay
+  const pts = lines.flat();
+  if (!pts.length) return;
+  const left = pts.reduce((a, b) => (b[0] < a[0] ? b : a));
+  const [x, y] = toCss(view, Math.max(left[0], 0), left[1]);
+  label(ctx, x + 8, y + 16, "BERTH LINE", c.berth, c.targetBg, 12);
+}
+
+function drawTarget(ctx, [x, y], t, c, trusted, right) {
+  const col = trusted ? c.target : "#b0b0b0";
+  ctx.lineWidth = 4;
+  ctx.strokeStyle = "rgba(0,0,0,0.6)";
+  ring(ctx, x, y);
+  ctx.lineWidth = 2;
+  ctx.strokeStyle = col;
+  ring(ctx, x, y);
+  const name = t.label || t.id;
+  const text = `${name}  ${t.distance_m.toFixed(1)} m`;
+  ctx.font = "700 17px system-ui, sans-serif";
+  const w = ctx.measureText(text).width;
+  // right of the mark, or left of it near the right edge of the picture
+  label(ctx, x + 14 + w + 6 > right ? x - 14 - w : x + 14, y - 16, text, col, c.targetBg, 17);
+}
+
+function ring(ctx, x, y) {
+  ctx.beginPath();
+  ctx.arc(x, y, 9, 0, 2 * Math.PI);
+  ctx.moveTo(x - 15, y); ctx.lineTo(x - 5, y);
+  ctx.moveTo(x + 5, y); ctx.lineTo(x + 15, y);
+  ctx.moveTo(x, y - 15); ctx.lineTo(x, y - 5);
+  ctx.moveTo(x, y + 5); ctx.lineTo(x, y + 15);
+  ctx.stroke();
+}
+
+function drawPick(ctx, [x, y], c) {
+  ctx.strokeStyle = c.berth;
+  ctx.lineWidth = 3;
+  ctx.beginPath();
+  ctx.moveTo(x - 9, y - 9); ctx.lineTo(x + 9, y + 9);
+  ctx.moveTo(x + 9, y - 9); ctx.lineTo(x - 9, y + 9);
+  ctx.stroke();
+}
+
+/** Text on a dark box: readable on water, sky and quay alike. */
+export function label(ctx, x, y, text, color, bg, size = 15) {
+  ctx.font = `700 ${size}px system-ui, sans-serif`;
+  const w = ctx.measureText(text).width;
+  const pad = 4;
+  ctx.fillStyle = bg;
+  ctx.fillRect(x - pad, y - size / 2 - pad, w + 2 * pad, size + 2 * pad);
+  ctx.fillStyle = color;
+  ctx.textBaseline = "middle";
+  ctx.fillText(text, x, y + 1);
+}
+
+/** The distance colour scale, identical to the server's hue_color (red near → blue far). */
+export function hueColor(fraction) {
+  const h6 = 4 * Math.min(Math.max(fraction, 0), 1);
+  const clamp = (x) => Math.round(255 * Math.min(Math.max(x, 0), 1));
+  return `rgb(${clamp(2 - h6)},${clamp(Math.min(h6, 4 - h6))},${clamp(h6 - 2)})`;
+}
+
+/** The distance shown blue (the full colour scale), for the legend. The stream does not carry
+ *  it, so it is read back from the points themselves: a point whose colour is not at either end
+ *  of the scale gives distance / fraction exactly. Falls back to twice the grid radius. */
+export function colorRange(overlay) {
+  if (overlay?.color_range_m) return overlay.color_range_m;
+  const pts = overlay?.video?.points;
+  for (let i = 0; i < (pts?.color?.length ?? 0); i++) {
+    const f = hueFraction(pts.color[i]);
+    if (f > 0.08 && f < 0.92) return pts.distance_m[i] / f;
+  }
+  const r = overlay?.birdseye?.radius_m;
+  return r ? 2 * r : null;
+}
+
+/** Inverse of hueColor for '#rrggbb'. */
+function hueFraction(hex) {
+  const [r, g, b] = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
+  const h6 = r >= 1 && b <= 0 ? g : g >= 1 && b <= 0 ? 2 - r : r <= 0 && g >= 1 ? 2 + b : 4 - g;
+  return h6 / 4;
+}
+
+export function drawLegend(canvas) {
+  const ctx = canvas.getContext("2d");
+  for (let x = 0; x < canvas.width; x++) {
+    ctx.fillStyle = hueColor(x / (canvas.width - 1));
+    ctx.fillRect(x, 0, 1, canvas.height);
+  }
+}

@@ -1,0 +1,92 @@
+// Fusion and connection status. Decides whether the overlay may be trusted: before the fusion
+// runs on a fixed GNSS compass (phases initialising / aligning, compass float) the overlay is
+// drawn in grey and a notice over the video says why. Degraded fusion and a provisional VO
+// scale keep the colours but get an amber advisory: the picture is usable, with care.
+
+const CONN = {
+  idle: ["–", "warn"],
+  connecting: ["connecting", "warn"],
+  live: ["live", "ok"],
+  stale: ["no frames", "warn"],
+  reconnecting: ["reconnecting", "bad"],
+  closed: ["closed", "bad"],
+};
+
+const PHASE_LEVEL = { fused: "ok", degraded: "warn", aligning: "bad", initialising: "bad" };
+
+/** {trusted, reasons (grey-out), advisories} of a frame header. Pure: tested through the page. */
+export function assess(frame) {
+  const st = frame?.status;
+  const reasons = [];
+  const advisories = [];
+  if (!frame?.pose || !st) {
+    reasons.push("Initialising — no fused position yet");
+    return { trusted: false, reasons, advisories };
+  }
+  if (st.phase === "initialising") reasons.push(`Initialising — ${st.message || "waiting for GNSS"}`);
+  else if (st.phase === "aligning") reasons.push("Aligning — no GNSS compass fix yet");
+  if (!st.compass_fixed && st.phase !== "aligning") reasons.push("GNSS compass not fixed — heading unreliable");
+  if (st.phase === "degraded") advisories.push("Degraded — no carrier-phase velocity, position drifting");
+  if (st.vo_status === "lost") advisories.push("Visual odometry lost — 3-D points not updated");
+  else if (st.vo_status === "tracking" && !st.scale_converged) {
+    advisories.push("VO scale converging — point distances provisional");
+  }
+  return { trusted: reasons.length === 0, reasons, advisories };
+}
+
+export class Status {
+  constructor(root) {
+    this.chip = (id) => root.querySelector(`#st-${id}`);
+    this.notice = root.querySelector("#untrusted");
+    this.connection = "idle";
+    this.trust = { trusted: false, reasons: ["Waiting for the video stream"], advisories: [] };
+  }
+
+  setConnection(state, detail) {
+    this.connection = state;
+    const [text, level] = CONN[state] || [state, "warn"];
+    this._chip("conn", text, level, detail || "");
+    this._notice();
+  }
+
+  /** Update from a frame header; returns {trusted, reasons, advisories}. */
+  update(frame) {
+    const st = frame?.status;
+    this.trust = assess(frame);
+    if (!frame?.pose || !st) {
+      for (const id of ["compass", "sats", "vo", "scale"]) this._chip(id, "–", "warn");
+      this._chip("phase", "initialising", "bad");
+    } else {
+      this._chip("phase", st.phase, PHASE_LEVEL[st.phase] || "warn", st.message);
+      this._chip("compass", st.compass_fixed ? "fixed" : "float", st.compass_fixed ? "ok" : "bad");
+      // >= 4 satellites keep the carrier-phase velocity (SPEC 5); fewer degrade it
+      this._chip("sats", String(st.satellites), st.satellites >= 4 ? "ok" : st.satellites > 0 ? "warn" : "bad");
+      this._chip("vo", st.vo_status, st.vo_status === "tracking" ? "ok" : st.vo_status === "lost" ? "bad" : "warn");
+      this._chip("scale", st.scale_converged ? "converged" : "converging",
+        st.scale_converged ? "ok" : "warn", st.scale == null ? "" : `VO scale ${st.scale.toFixed(3)}`);
+    }
+    this._notice();
+    return this.trust;
+  }
+
+  _notice() {
+    const reasons = [...this.trust.reasons];
+    if (this.connection === "reconnecting" || this.connection === "closed") {
+      reasons.unshift("Connection lost — picture frozen");
+    } else if (this.connection === "stale") {
+      reasons.unshift("No new frames — picture frozen");
+    }
+    const all = [...reasons, ...this.trust.advisories];
+    this.notice.hidden = all.length === 0;
+    this.notice.dataset.level = reasons.length ? "bad" : "warn";
+    this.notice.textContent = reasons.length ? `Overlay not reliable: ${reasons[0]}` : all[0] || "";
+    this.notice.title = all.join("\n");
+  }
+
+  _chip(id, text, level, title = "") {
+    const el = this.chip(id);
+    el.querySelector(".v").textContent = text;
+    el.dataset.level = level;
+    el.title = title;
+  }
+}

@@ -1,0 +1,137 @@
+// The per-session WebSocket: a text header per frame followed by the frame's JPEG (binary),
+// plus status messages. Newest frame wins: while one JPEG is being decoded, later arrivals
+// replace each other and only the newest is decoded next, so the display never lags behind.
+// Rendering happens on the next animation frame with the header of THAT frame, which keeps
+// the overlay exactly in step with the picture.
+
+const RECONNECT_MS = [500, 1000, 2000, 4000, 5000];
+const STALE_MS = 2500; // no frame for this long while playing: say so
+
+export class Stream {
+  /**
+   * @param {object} handlers  onFrame(header, bitmap), onStatus(session), onState(state, detail),
+   *                           onGone(detail) when the session no longer exists.
+   */
+  constructor(handlers) {
+    this.h = handlers;
+    this.ws = null;
+    this.sessionId = null;
+    this.state = "idle"; // idle | connecting | live | stale | reconnecting | closed
+    this.attempt = 0;
+    this.header = null; // header waiting for its JPEG
+    this.next = null; // newest undecoded {header, blob}
+    this.decoding = false;
+    this.ready = null; // decoded, waiting for the animation frame
+    this.lastFrameAt = 0;
+    this.playing = false;
+    this.frames = 0;
+    this.dropped = 0;
+    this._timer = null;
+    this._stale = setInterval(() => this._checkStale(), 500);
+  }
+
+  open(sessionId) {
+    this.close();
+    this.sessionId = sessionId;
+    this.attempt = 0;
+    this._connect();
+  }
+
+  close() {
+    clearTimeout(this._timer);
+    if (this.ws) {
+      this.ws.onclose = null;
+      this.ws.close();
+      this.ws = null;
+    }
+    this.sessionId = null;
+    this.header = this.next = null;
+    this._set("idle");
+  }
+
+  _connect() {
+    const proto = location.protocol === "https:" ? "wss:" : "ws:";
+    const ws = new WebSocket(`${proto}//${location.host}/api/sessions/${this.sessionId}/stream`);
+    ws.binaryType = "blob";
+    this.ws = ws;
+    this._set(this.attempt ? "reconnecting" : "connecting");
+    ws.onopen = () => { this.attempt = 0; this._set("live"); };
+    ws.onmessage = (ev) => this._message(ev.data);
+    ws.onclose = (ev) => {
+      this.ws = null;
+      if (ev.code === 4404) { // the server says the session is gone
+        this._set("closed", "session gone");
+        this.h.onGone?.("the session no longer exists");
+        return;
+      }
+      const delay = RECONNECT_MS[Math.min(this.attempt, RECONNECT_MS.length - 1)];
+      this.attempt += 1;
+      this._set("reconnecting", `retry in ${(delay / 1000).toFixed(1)} s`);
+      this._timer = setTimeout(() => this._connect(), delay);
+    };
+  }
+
+  _message(data) {
+    if (typeof data !== "string") { // the JPEG of the header just received
+      if (!this.header) return;
+      if (this.next) this.dropped += 1;
+      this.next = { header: this.header, blob: data };
+      this.header = null;
+      this._decode();
+      return;
+    }
+    const msg = JSON.parse(data);
+    if (msg.type === "frame") {
+      this.header = msg;
+    } else if (msg.type === "status") {
+      this.playing = !!msg.session?.playing;
+      this.h.onStatus?.(msg.session);
+    } else if (msg.type === "closed" || msg.type === "error") {
+      // "closed": the session was deleted; "error": it never existed
+      this.ws && (this.ws.onclose = null);
+      this._set("closed", msg.detail);
+      this.h.onGone?.(msg.detail);
+    }
+  }
+
+  async _decode() {
+    if (this.decoding || !this.next) return;
+    this.decoding = true;
+    const { header, blob } = this.next;
+    this.next = null;
+    try {
+      const bitmap = await createImageBitmap(blob);
+      if (this.ready) { this.ready.bitmap.close?.(); this.dropped += 1; }
+      this.ready = { header, bitmap };
+      requestAnimationFrame(() => this._render());
+    } catch (err) {
+      console.warn("frame decode failed", err);
+    }
+    this.decoding = false;
+    this._decode(); // a newer frame may have arrived meanwhile
+  }
+
+  _render() {
+    if (!this.ready) return;
+    const { header, bitmap } = this.ready;
+    this.ready = null;
+    this.frames += 1;
+    this.lastFrameAt = performance.now();
+    if (this.state === "stale") this._set("live");
+    this.h.onFrame(header, bitmap); // the handler owns the bitmap from here (keeps it for redraws)
+  }
+
+  _checkStale() {
+    if (this.state === "live" && this.playing && this.lastFrameAt
+        && performance.now() - this.lastFrameAt > STALE_MS) {
+      this._set("stale", "no frames");
+    }
+  }
+
+  _set(state, detail = "") {
+    if (state === this.state && detail === this.detail) return;
+    this.state = state;
+    this.detail = detail;
+    this.h.onState?.(state, detail);
+  }
+}

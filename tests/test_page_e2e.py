@@ -1,0 +1,604 @@
+"""End-to-end tests of the officer's page (frontend/) against the real server.
+
+A short small-boat recording is simulated once per test session, ``berthing-aid serve`` runs on
+free loopback ports, and Debian's chromium (driven by playwright) opens the page. The page
+exposes what it has on screen as ``window.berthing`` (the frame header last drawn, the
+image→canvas mapping, the canvas colours), so pixel checks use the very message that was drawn.
+
+Every state is saved as a screenshot in ``tests/artifacts/`` for a human look.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
+ROOT = Path(__file__).resolve().parent.parent
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run",
+                 "--disable-quic"]
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(not CHROMIUM.exists(),
+                       reason="end-to-end page tests need Debian's chromium at /usr/bin/chromium "
+                              "(apt-get install chromium); playwright cannot download browsers "
+                              "here"),
+]
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+
+# ----------------------------------------------------------------------------- fixtures
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _get_json(url: str, method: str = "GET") -> dict | None:
+    req = urllib.request.Request(url, method=method)
+    with urllib.request.urlopen(req, timeout=5) as res:
+        body = res.read()
+    return json.loads(body) if body else None
+
+
+@pytest.fixture(scope="session")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from recordings.sim.simulate import simulate
+
+    return simulate("small-boat", 1, tmp_path_factory.mktemp("page") / "rec12", duration_s=12,
+                    progress=False)
+
+
+@pytest.fixture(scope="session")
+def server(recording: Path) -> Iterator[str]:
+    """``berthing-aid serve`` on free loopback ports; yields its base URL."""
+    port, viser_port = _free_port(), _free_port()
+    log = (ARTIFACTS / "server.log")
+    ARTIFACTS.mkdir(exist_ok=True)
+    with log.open("w") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "backend.cli", "serve", str(recording), "--host", "127.0.0.1",
+             "--port", str(port), "--viser-port", str(viser_port)],
+            cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env={**os.environ,
+                                                                 "PYTHONUNBUFFERED": "1"})
+        base = f"http://127.0.0.1:{port}"
+        try:
+            deadline = time.monotonic() + 60
+            while True:
+                if proc.poll() is not None:
+                    pytest.fail(f"server exited ({proc.returncode}): {log.read_text()}")
+                with contextlib.suppress(OSError):
+                    _get_json(base + "/api/recordings")
+                    break
+                if time.monotonic() > deadline:
+                    pytest.fail(f"server did not answer within 60 s: {log.read_text()}")
+                time.sleep(0.3)
+            yield base
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+@pytest.fixture(scope="session")
+def browser() -> Iterator:
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def _open_page(browser, server: str, width: int, height: int, query: str = ""):
+    page = browser.new_page(viewport={"width": width, "height": height})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server + "/" + query)
+    page.errors = errors  # checked at the end of each test
+    return page
+
+
+@pytest.fixture
+def page(browser, server: str) -> Iterator:
+    """The page at 1920x1080 with its own replay session (deleted afterwards: the server
+    allows only a few at once)."""
+    pg = _open_page(browser, server, 1920, 1080)
+    yield pg
+    _close(pg, server)
+
+
+def _close(pg, server: str) -> None:
+    with contextlib.suppress(Exception):
+        sid = pg.evaluate("() => window.berthing.session && window.berthing.session.id")
+        if sid:
+            _get_json(f"{server}/api/sessions/{sid}", method="DELETE")
+    errors = pg.errors
+    pg.close()
+    assert not errors, f"uncaught errors in the page: {errors}"
+
+
+# ------------------------------------------------------------------------------ helpers
+
+
+def shot(page, name: str) -> None:
+    ARTIFACTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / f"{name}.png"))
+
+
+def frame(page) -> dict | None:
+    return page.evaluate("() => window.berthing.frame")
+
+
+def _wait(page, condition: str, timeout_s: float, value: str = "true"):
+    """Wait for a JS condition on ``b = window.berthing``; returns ``value`` (a JS expression)
+    evaluated in the same task as the condition held. A replay that stopped with an error
+    fails at once with the server's message rather than after the timeout."""
+    try:
+        handle = page.wait_for_function(
+            f"() => {{ const b = window.berthing, f = b.frame; "
+            f"if (b.session && b.session.state === 'error') return {{error: b.session.error}}; "
+            f"return ({condition}) ? {{value: {value}}} : false; }}",
+            timeout=timeout_s * 1000)
+    except playwright_api.TimeoutError:
+        shot(page, "FAILED_wait")
+        seen = page.evaluate("""() => ({toasts: window.berthing.toasts, t: window.berthing.frame?.t,
+            session: window.berthing.session?.state, link: window.berthing.stats.connection})""")
+        pytest.fail(f"timed out after {timeout_s} s waiting for {condition}; page: {seen}")
+    out = handle.json_value()
+    if "error" in out:
+        pytest.fail(f"the replay stopped with an error: {out['error']}")
+    return out.get("value")
+
+
+def wait_frame(page, predicate: str = "f => f", timeout_s: float = 30.0) -> dict:
+    """The frame on screen once it satisfies ``predicate`` (JS arrow function of it)."""
+    return _wait(page, f"!!f && ({predicate})(f)", timeout_s, "f")
+
+
+def wait_trusted(page, timeout_s: float = 30.0) -> dict:
+    """A frame whose fused pose the page trusts (GNSS compass fixed, fusion running)."""
+    return _wait(page, "!!f && !!f.overlay && b.trust.trusted", timeout_s, "f")
+
+
+def pause(page) -> None:
+    page.click("#play")
+    _wait(page, "b.session.state === 'paused'", 15)
+    page.wait_for_timeout(300)  # the last frame sent before the pause has arrived
+
+
+def css_point(page, canvas_id: str, u: float, v: float) -> tuple[float, float]:
+    """Page coordinates of image pixel (u, v) of the video."""
+    box = page.locator(f"#{canvas_id}").bounding_box()
+    view = page.evaluate("() => window.berthing.view")
+    return box["x"] + view["ox"] + u * view["scale"], box["y"] + view["oy"] + v * view["scale"]
+
+
+def parse_color(css: str) -> tuple[int, int, int]:
+    css = css.strip()
+    if css.startswith("#"):
+        return tuple(int(css[i:i + 2], 16) for i in (1, 3, 5))
+    return tuple(int(float(x)) for x in re.findall(r"[\d.]+", css)[:3])
+
+
+# JS: sample the overlay canvas at grid nodes of the frame on screen, in the same task as
+# reading the frame (no redraw can come in between). Nodes near other drawings (points,
+# predicted outlines, targets) are skipped; "background" samples are spots far from every
+# line and point, where nothing may be drawn.
+SAMPLE_GRID = """() => {
+  const b = window.berthing, f = b.frame, v = b.view;
+  const cv = document.getElementById('overlay');
+  const ctx = cv.getContext('2d', {willReadFrequently: true});
+  // the most covered pixel of the 3x3 around the point: lines are antialiased
+  const px = (u, w) => {
+    const d = ctx.getImageData(Math.round((v.ox + u * v.scale) * v.dpr) - 1,
+                               Math.round((v.oy + w * v.scale) * v.dpr) - 1, 3, 3).data;
+    let best = 0;
+    for (let i = 4; i < d.length; i += 4) if (d[i + 3] > d[best + 3]) best = i;
+    return d.slice(best, best + 4);
+  };
+  const segs = [];
+  const addLines = (lines) => {
+    for (const l of lines) for (let i = 1; i < l.length; i++) segs.push([l[i-1], l[i]]);
+  };
+  const ov = f.overlay.video;
+  for (const p of ov.prediction) addLines(p.polylines);
+  if (f.overlay.berth) addLines(f.overlay.berth.polylines);
+  const otherSegs = segs.splice(0);
+  addLines(ov.grid.lines);
+  const gridSegs = segs.splice(0);
+  const dSeg = (p, [a, c]) => {
+    const dx = c[0] - a[0], dy = c[1] - a[1];
+    const t = Math.max(0, Math.min(1, ((p[0]-a[0])*dx + (p[1]-a[1])*dy) / (dx*dx + dy*dy || 1)));
+    return Math.hypot(p[0] - a[0] - t*dx, p[1] - a[1] - t*dy);
+  };
+  const near = (p, r) => ov.points.uv.some(q => Math.hypot(q[0]-p[0], q[1]-p[1]) < r)
+    || otherSegs.some(s => dSeg(p, s) < r)
+    || (f.overlay.targets || []).some(t => t.uv && Math.hypot(t.uv[0]-p[0], t.uv[1]-p[1]) < 40);
+  const nodes = ov.grid.nodes.uv.filter(p => p[0] > 3 && p[1] > 3 && p[0] < f.width - 3
+                                        && p[1] < f.height - 3 && !near(p, 6));
+  const grid = nodes.slice(0, 40).map(p => ({uv: p, rgba: Array.from(px(p[0], p[1]))}));
+  const background = [];
+  for (let w = 5; w < f.height; w += 23) for (let u = 5; u < f.width; u += 31) {
+    const p = [u, w];
+    if (gridSegs.every(s => dSeg(p, s) > 6) && !near(p, 8) && background.length < 60)
+      background.push({uv: p, rgba: Array.from(px(u, w))});
+  }
+  return {t: f.t, frame: f.frame, trusted: b.trust.trusted, grid, background,
+          gridColor: b.colors.grid, nodes: ov.grid.nodes.uv.length};
+}"""
+
+
+# -------------------------------------------------------------------------------- tests
+
+
+def test_page_loads_and_frames_play(page) -> None:
+    f1 = wait_frame(page)
+    f2 = wait_frame(page, f"f => f.t > {f1['t']} + 1.0", timeout_s=15)
+    assert f2["frame"] > f1["frame"], "the frame index advances while playing"
+    assert page.evaluate("() => window.berthing.stats.connection") == "live"
+    assert page.locator("#st-conn .v").inner_text() == "live"
+    assert page.locator("#time").inner_text() != "0:00.0"
+    # one session of the only recording, playing
+    assert page.locator("#recording").input_value() == "rec12"
+    assert page.locator("#play").inner_text() == "❚❚"
+    wait_trusted(page)
+    # the layout fits 1920x1080 without scrolling
+    assert page.evaluate("() => document.scrollingElement.scrollHeight") <= 1080
+    shot(page, "01_playing_1920")
+
+
+def test_grid_drawn_where_the_pose_says(page) -> None:
+    wait_trusted(page)
+    page.wait_for_function("() => window.berthing.frame.overlay.video.grid.nodes.uv.length > 10")
+    s = page.evaluate(SAMPLE_GRID)
+    assert s["trusted"]
+    assert len(s["grid"]) >= 5, f"too few grid nodes free of other drawings: {s['nodes']}"
+    want = parse_color(s["gridColor"])
+    assert want[1] > 200 and want[0] < 80 and want[2] < 120, "the grid colour is green"
+
+    def green(rgba):
+        r, g, b, a = rgba
+        return a > 100 and g > 180 and g > r + 80 and g > b + 60
+
+    hits = [n for n in s["grid"] if green(n["rgba"])]
+    assert len(hits) >= 0.8 * len(s["grid"]), f"grid nodes not green: {s['grid'][:8]}"
+    # and nothing is drawn away from the grid lines and points
+    assert s["background"], "no free background spot found"
+    painted = [b for b in s["background"] if b["rgba"][3] > 0]
+    assert len(painted) <= 0.05 * len(s["background"]), f"painted off the grid: {painted[:5]}"
+    shot(page, "02_grid")
+
+
+def test_overlay_greys_out_when_untrusted(page) -> None:
+    """The same overlay with the fusion still aligning (no compass fix): grey, and the notice
+    over the video says why."""
+    wait_trusted(page)
+    page.wait_for_function("() => window.berthing.frame.overlay.video.grid.nodes.uv.length > 10")
+    pause(page)  # no newer frame may replace the one we draw
+    page.evaluate("""() => { const f = window.berthing.frame;
+      window.berthing.show({...f, status: {...f.status, phase: 'aligning', compass_fixed: false}});
+    }""")
+    assert not page.evaluate("() => window.berthing.trust.trusted")
+    notice = page.locator("#untrusted")
+    assert notice.is_visible() and "Aligning" in notice.inner_text()
+    assert page.locator("#st-compass").get_attribute("data-level") == "bad"
+    s = page.evaluate(SAMPLE_GRID)
+    drawn = [n["rgba"] for n in s["grid"] if n["rgba"][3] > 100]
+    assert len(drawn) >= 0.8 * len(s["grid"]) > 0
+    for r, g, b, _a in drawn:
+        assert max(r, g, b) - min(r, g, b) < 30, f"grid not grey when untrusted: {drawn[:5]}"
+    shot(page, "02_untrusted_grey")
+
+
+def test_birdseye_shows_the_ship(page) -> None:
+    wait_trusted(page)
+    sample = """() => {
+      const cv = document.getElementById('birdseye');
+      const ctx = cv.getContext('2d');
+      const c = ctx.getImageData(Math.round(cv.width / 2), Math.round(cv.height / 2), 1, 1).data;
+      const corner = ctx.getImageData(Math.round(cv.width * 0.1), Math.round(cv.height * 0.9),
+                                      1, 1).data;
+      return {centre: Array.from(c), corner: Array.from(corner), ship: window.berthing.colors.ship,
+              bg: window.berthing.colors.planBg, t: window.berthing.frame.t,
+              heading: window.berthing.frame.overlay.birdseye.heading_deg};
+    }"""
+    s = page.evaluate(sample)
+    ship = parse_color(s["ship"])
+    assert all(abs(a - b) <= 12 for a, b in zip(s["centre"][:3], ship, strict=True)), s
+    assert s["corner"][:3] != list(ship), "the ship colour is not everywhere"
+    shot(page, "03_birdseye_north_up")
+    # head-up: the ship is still at the centre, the plan turns with it
+    page.click("#orient")
+    assert page.locator("#orient").inner_text() == "Head-up"
+    page.wait_for_timeout(300)
+    s2 = page.evaluate(sample)
+    assert all(abs(a - b) <= 12 for a, b in zip(s2["centre"][:3], ship, strict=True)), s2
+    assert page.evaluate("() => window.berthing.plan.rot") == pytest.approx(
+        s2["heading"] * 3.141592653589793 / 180, abs=0.05)
+    shot(page, "03_birdseye_head_up")
+    page.click("#orient")
+
+
+def _quay_point(f: dict) -> tuple[int, list[float]]:
+    """A port-structure point on the video near the image centre (id, uv)."""
+    pts = f["overlay"]["video"]["points"]
+    w, h = f["width"], f["height"]
+    best = min(range(len(pts["uv"])),
+               key=lambda i: abs(pts["uv"][i][0] - w / 2) + 0.3 * abs(pts["uv"][i][1] - h / 2))
+    return pts["id"][best], pts["uv"][best]
+
+
+def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
+    wait_trusted(page)
+    f = wait_frame(page, "f => f.overlay && f.overlay.video.points.uv.length > 20")
+    pid, uv = _quay_point(f)
+    page.mouse.click(*css_point(page, "overlay", *uv))
+    f1 = wait_frame(page, "f => f.overlay.targets.length === 1")
+    t1 = f1["overlay"]["targets"][0]
+    assert t1["distance_m"] > 5
+    page.wait_for_selector("#targets li[data-id]")
+    assert re.search(r"\d+\.\d m", page.locator("#targets li[data-id] .tdist").inner_text())
+    shot(page, "04_target_designated")
+
+    # frames later the label is still there, on the same quay point, with a new distance
+    f2 = wait_frame(page, f"f => f.t > {f1['t']} + 2.0 && f.overlay.targets.length === 1")
+    t2 = f2["overlay"]["targets"][0]
+    assert t2["id"] == t1["id"] and t2["visible"]
+    assert t2["distance_m"] > 1.0
+    pts = f2["overlay"]["video"]["points"]
+    if pid in pts["id"]:  # the anchoring structure point is still mapped: the target is on it
+        anchor = pts["uv"][pts["id"].index(pid)]
+        assert abs(anchor[0] - t2["uv"][0]) < 25 and abs(anchor[1] - t2["uv"][1]) < 25, \
+            (anchor, t2["uv"])
+    # the label is drawn on the overlay next to the target: its dark box is there
+    label = page.evaluate("""() => {
+      const b = window.berthing, t = b.frame.overlay.targets[0], v = b.view;
+      const cv = document.getElementById('overlay');
+      const x = (v.ox + t.uv[0] * v.scale + 30) * v.dpr;
+      const y = (v.oy + t.uv[1] * v.scale - 16) * v.dpr;
+      return Array.from(cv.getContext('2d').getImageData(Math.round(x), Math.round(y), 1, 1).data);
+    }""")
+    assert label[3] > 150, f"no distance label at the target: {label}"
+    assert page.locator("#targets li[data-id]").count() == 1
+    # the list shows the distance of the frame on screen
+    shown = page.evaluate("""() => [
+      document.querySelector('#targets li[data-id] .tdist').textContent,
+                                    window.berthing.frame.overlay.targets[0].distance_m]""")
+    assert shown[0] == f"{shown[1]:.1f} m"
+    shot(page, "04_target_frames_later")
+
+    # a second target, then remove the first
+    uv2 = f2["overlay"]["video"]["points"]["uv"][0]
+    page.mouse.click(*css_point(page, "overlay", *uv2))
+    wait_frame(page, "f => f.overlay.targets.length === 2")
+    page.locator(f"#targets li[data-id='{t1['id']}'] button").click()
+    f3 = wait_frame(page, "f => f.overlay.targets.length === 1 "
+                          f"&& f.overlay.targets[0].id !== '{t1['id']}'")
+    assert f3["overlay"]["targets"][0]["id"] != t1["id"]
+
+
+def test_berth_line_from_two_clicks_gives_bow_and_stern(page) -> None:
+    # the recording's own berth line is drawn on the quay's water line: the officer's two
+    # clicks go on that line, so the figures must come out (nearly) the same
+    f = wait_frame(page, "f => f.overlay && f.overlay.berth && f.overlay.berth.polylines.length "
+                         "&& f.t > 3")
+    pause(page)
+    f = frame(page)
+    ref = f["overlay"]["berth"]
+    drawn = sorted((p for line in ref["polylines"] for p in line
+                    if 20 < p[0] < f["width"] - 20 and 0 < p[1] < f["height"]),
+                   key=lambda p: p[0])
+    assert len(drawn) >= 2, ref["polylines"]
+    a, b = drawn[0], drawn[-1]
+
+    page.click("#berth-clear")
+    wait_frame(page, "f => f.overlay.berth === null")
+    assert page.locator("#bow-dist").inner_text() == "–"
+    page.click("#berth-set")
+    assert page.locator("#hint").is_visible()
+    page.mouse.click(*css_point(page, "overlay", *a))
+    page.wait_for_timeout(200)
+    shot(page, "05_berth_first_click")
+    page.mouse.click(*css_point(page, "overlay", *b))
+    f2 = wait_frame(page, "f => f.overlay.berth && f.overlay.berth.bow_distance_m != null")
+    berth = f2["overlay"]["berth"]
+    assert berth["source"] == "image"
+    for end in ("bow", "stern"):
+        # a pixel near the horizon is worth metres at 60 m from a camera 1 m above the water
+        assert berth[f"{end}_distance_m"] == pytest.approx(ref[f"{end}_distance_m"], rel=0.15)
+        assert berth[f"{end}_approach_mps"] == pytest.approx(ref[f"{end}_approach_mps"], abs=0.1)
+    # heading ~25 deg towards the quay: the bow is nearer and both ends are closing
+    assert 0 < berth["bow_distance_m"] < berth["stern_distance_m"]
+    assert berth["bow_approach_mps"] > 0.2 and berth["stern_approach_mps"] > 0.2
+    bow = page.locator("#bow-dist").inner_text().replace("\n", "")
+    assert bow == f"{berth['bow_distance_m']:.2f}m", bow
+    speed = page.locator("#bow-speed").inner_text().replace("\n", "")
+    assert speed.startswith(f"▼{berth['bow_approach_mps'] * 100:.0f}cm/s"), speed
+    # ~1 m/s towards the quay is far above the 15 cm/s default limit: alarm
+    assert "alarm" in page.locator("#bow-speed").get_attribute("class")
+    assert "alarm" in page.locator("#video-wrap").get_attribute("class")
+    shot(page, "05_berth_line_video")
+
+    # playing on, the server's frames carry the new line (drawn by the server's projection)
+    page.click("#play")
+    f3 = wait_frame(page, f"f => f.t > {f2['t']} + 0.5 && f.overlay.berth "
+                          "&& f.overlay.berth.polylines.length")
+    assert f3["overlay"]["berth"]["bow_distance_m"] < berth["bow_distance_m"], "closing"
+
+    # raising the limit above the approach speed silences the alarm
+    page.fill("#limit", "500")
+    page.locator("#limit").dispatch_event("change")
+    _wait(page, "!document.querySelector('#bow-speed').classList.contains('alarm')", 5)
+
+    # the berth line from two clicks in the plan instead
+    before = json.dumps(f3["overlay"]["birdseye"]["berth_line"], separators=(",", ":"))
+    page.click("#berth-set")
+    box = page.locator("#birdseye").bounding_box()
+    page.mouse.click(box["x"] + box["width"] * 0.2, box["y"] + box["height"] * 0.25)
+    page.mouse.click(box["x"] + box["width"] * 0.8, box["y"] + box["height"] * 0.25)
+    f4 = wait_frame(page, "f => f.overlay.berth && f.overlay.berth.source === 'ned' "
+                          f"&& JSON.stringify(f.overlay.birdseye.berth_line) !== '{before}'")
+    line = f4["overlay"]["birdseye"]["berth_line"]
+    pos = f4["overlay"]["birdseye"]["position"]
+    # clicked a quarter of the plan's height above its centre (north-up): north of the ship
+    assert line[0][0] > pos[0] and line[1][0] > pos[0]
+    assert f4["overlay"]["berth"]["bow_distance_m"] > 0
+    page.wait_for_timeout(300)
+    shot(page, "05_berth_line_plan")
+    page.click("#berth-clear")
+    wait_frame(page, "f => f.overlay && f.overlay.berth === null")
+    assert page.locator("#bow-dist").inner_text() == "–"
+
+
+def test_pause_and_seek(page) -> None:
+    wait_trusted(page)
+    pause(page)
+    assert page.locator("#play").inner_text() == "▶"
+    t_paused = frame(page)["t"]
+    page.wait_for_timeout(1200)
+    assert frame(page)["t"] == t_paused, "paused: the picture stays"
+    shot(page, "06_paused")
+
+    # seek back to 4 s while paused: the frame at 4 s is shown
+    page.evaluate("""() => { const s = document.getElementById('seek');
+      s.value = '4'; s.dispatchEvent(new Event('input'));
+      s.dispatchEvent(new Event('change')); }""")
+    f = wait_frame(page, "f => Math.abs(f.t - 4.0) < 0.15", timeout_s=30)
+    assert page.evaluate("() => window.berthing.session.state") == "paused"
+    assert page.locator("#time").inner_text() == "0:04.0"
+    shot(page, "06_seek_4s")
+
+    # seek to before the GNSS compass fix: the overlay says why it is missing
+    page.evaluate("""() => { const s = document.getElementById('seek');
+      s.value = '0.5'; s.dispatchEvent(new Event('change')); }""")
+    f = wait_frame(page, "f => Math.abs(f.t - 0.5) < 0.15", timeout_s=30)
+    if f["pose"] is None or not page.evaluate("() => window.berthing.trust.trusted"):
+        notice = page.locator("#untrusted")
+        assert notice.is_visible()
+        assert "not reliable" in notice.inner_text()
+        shot(page, "06_seek_initialising")
+
+    # play resumes
+    page.click("#play")
+    page.wait_for_function("() => window.berthing.frame.t > 1.5", timeout=15000)
+
+
+def test_speed_and_a_second_screen(page, browser, server: str) -> None:
+    wait_frame(page)
+    page.select_option("#speed", "2")
+    _wait(page, "b.session.speed === 2", 10)
+    sid = page.evaluate("() => window.berthing.session.id")
+    # a second screen watches the same replay (?session=): same frames, same controls
+    second = _open_page(browser, server, 1280, 800, f"?session={sid}")
+    try:
+        wait_frame(second)
+        assert second.evaluate("() => window.berthing.session.id") == sid
+        assert second.locator("#speed").input_value() == "2"
+        pause(second)
+        _wait(page, "b.session.state === 'paused'", 10)
+        assert page.locator("#play").inner_text() == "▶"
+        assert not second.errors
+    finally:
+        second.close()
+    # leaving did not delete the session it only watched
+    assert _get_json(f"{server}/api/sessions/{sid}")["id"] == sid
+
+
+def test_stream_reconnects(page) -> None:
+    f1 = wait_frame(page)
+    page.evaluate("() => window.berthing.dropConnection()")
+    page.wait_for_function("() => window.berthing.stats.connection !== 'live'", timeout=5000)
+    page.wait_for_function(f"() => window.berthing.stats.connection === 'live' "
+                           f"&& window.berthing.frame.frame > {f1['frame']} + 5", timeout=15000)
+
+
+def test_viewer_opens(page, server: str) -> None:
+    wait_frame(page)
+    page.click("#tab-3d")
+    assert page.locator("#view-3d").is_visible()
+    page.wait_for_function("() => document.getElementById('viewer').src.startsWith('http')",
+                           timeout=10000)
+    src = page.locator("#viewer").get_attribute("src")
+    assert page.locator("#viewer-link").get_attribute("href") == src
+    with urllib.request.urlopen(src, timeout=10) as res:
+        assert res.status == 200
+        assert b"<html" in res.read(4096).lower()
+    sid = page.evaluate("() => window.berthing.session.id")
+    info = _get_json(server + "/api/viewer")
+    assert info["session"] == sid, "the 3-D view shows this page's session"
+    page.wait_for_timeout(2500)
+    shot(page, "07_viewer")
+    page.click("#tab-ar")
+    assert page.locator("#view-ar").is_visible()
+
+
+def test_night_mode_switches_colours(page) -> None:
+    wait_trusted(page)
+    day_bg = page.evaluate("() => getComputedStyle(document.body).backgroundColor")
+    page.click("#theme")
+    assert page.evaluate("() => document.documentElement.dataset.theme") == "night"
+    page.wait_for_timeout(400)
+    s = page.evaluate("""() => {
+      const st = (sel, p) => getComputedStyle(document.querySelector(sel))[p];
+      const cv = document.getElementById('birdseye');
+      const ctx = cv.getContext('2d');
+      return {bg: st('body', 'backgroundColor'), text: st('#bow-dist', 'color'),
+              panel: st('.card', 'backgroundColor'),
+              ship: window.berthing.colors.ship,
+              centre: Array.from(ctx.getImageData(cv.width / 2, cv.height / 2, 1, 1).data),
+              corner: Array.from(ctx.getImageData(4, cv.height - 4, 1, 1).data),
+              video: st('#video', 'filter')};
+    }""")
+    assert s["bg"] != day_bg
+    assert parse_color(s["bg"]) == (0, 0, 0)
+    r, g, b = parse_color(s["text"])
+    assert r > 2 * g and r > 2 * b and r < 240, f"night text is dim red/amber: {s['text']}"
+    assert sum(parse_color(s["panel"])) < 40
+    assert sum(s["corner"][:3]) < 30, "night plan background is black"
+    ship = parse_color(s["ship"])
+    assert all(abs(a - c) <= 12 for a, c in zip(s["centre"][:3], ship, strict=True))
+    assert max(ship) < 200, "no bright ship at night"
+    assert "brightness" in s["video"], "the video is dimmed at night"
+    shot(page, "08_night")
+    page.click("#theme")
+    assert page.evaluate("() => document.documentElement.dataset.theme") == "day"
+
+
+def test_layout_1280x800(browser, server: str) -> None:
+    pg = _open_page(browser, server, 1280, 800)
+    try:
+        wait_trusted(pg)
+        wait_frame(pg, "f => f.overlay.video.points.uv.length > 20")
+        pg.wait_for_timeout(500)
+        assert pg.evaluate("() => document.scrollingElement.scrollHeight") <= 800
+        assert pg.evaluate("() => document.scrollingElement.scrollWidth") <= 1280
+        for sel in ("#video", "#birdseye", "#bow-dist", "#stern-speed", "#hdg", "#rot",
+                    "#targets", "#play", "#seek", "#speed", "#recording", "#theme", "#st-scale"):
+            box = pg.locator(sel).bounding_box()
+            assert box and box["width"] > 0 and box["height"] > 0, sel
+            assert box["x"] >= 0 and box["y"] >= 0, sel
+            assert box["x"] + box["width"] <= 1280 + 1 and box["y"] + box["height"] <= 800 + 1, \
+                (sel, box)
+        video = pg.locator("#video").bounding_box()
+        assert video["width"] >= 800, "the video stays the largest thing on the screen"
+        shot(pg, "09_layout_1280x800")
+    finally:
+        _close(pg, server)
