@@ -28,22 +28,6 @@ from backend.replay import (
 from recordings.format import Recording, load
 
 
-@pytest.fixture(scope="session")
-def sim_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 12 s small-boat recording, simulated once per test session (shared by the backend
-    test modules through the session's base temporary directory)."""
-    from recordings.sim.simulate import simulate
-
-    root = tmp_path_factory.getbasetemp() / "backend-recordings"
-    path = root / "small-boat-12s"
-    if not (path / "manifest.json").is_file():
-        staging = tmp_path_factory.mktemp("simulating")
-        simulate("small-boat", 1, staging / "rec", duration_s=12, progress=False)
-        root.mkdir(exist_ok=True)
-        (staging / "rec").rename(path)
-    return path
-
-
 @pytest.fixture(scope="module")
 def rec(sim_recording: Path) -> Recording:
     return load(sim_recording)

@@ -59,11 +59,8 @@ def _get_json(url: str, method: str = "GET") -> dict | None:
 
 
 @pytest.fixture(scope="session")
-def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from recordings.sim.simulate import simulate
-
-    return simulate("small-boat", 1, tmp_path_factory.mktemp("page") / "rec12", duration_s=12,
-                    progress=False)
+def recording(sim_recording: Path) -> Path:
+    return sim_recording
 
 
 @pytest.fixture(scope="session")
@@ -257,7 +254,7 @@ def test_page_loads_and_frames_play(page) -> None:
     assert page.locator("#st-conn .v").inner_text() == "live"
     assert page.locator("#time").inner_text() != "0:00.0"
     # one session of the only recording, playing
-    assert page.locator("#recording").input_value() == "rec12"
+    assert page.locator("#recording").input_value() == "small-boat-12s"
     assert page.locator("#play").inner_text() == "❚❚"
     wait_trusted(page)
     # the layout fits 1920x1080 without scrolling
