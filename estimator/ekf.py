@@ -116,7 +116,14 @@ class EkfConfig:
     clock_drift_tau: float = 1e4
     # VO drift grows with the distance travelled more than with time: each block has a time
     # density (rad²/s, 1/s, m²/s) plus a density per metre travelled (times the speed).
-    vo_attitude_psd: float = (0.01 * _DEG) ** 2
+    # The attitude's time density is NOT small: a slow ship seeing a far scene sideways (large
+    # ship, quay ~100 m abeam, 0.1 m/s) confuses lateral translation with yaw (bas-relief
+    # ambiguity) and its VO yaw drifts ~0.03 deg/s (1.2 deg in 40 s on large-ship seed 5,
+    # against < 0.1 deg in 80 s on the small boat). With (0.01 deg)²/s the 10 Hz Θ rows
+    # (white 0.15 deg each, i.e. ~0.05 deg/√s together) outweighed the single differences
+    # (~0.4 deg per epoch) and dragged the heading 0.7 deg off; at (0.1 deg)²/s the heading is
+    # held by the single differences + gyro and the VO attitude only smooths it over seconds.
+    vo_attitude_psd: float = (0.1 * _DEG) ** 2
     vo_attitude_per_m: float = (0.05 * _DEG) ** 2  # rad²/m
     vo_attitude_tau: float = 600.0
     vo_scale_psd: float = 0.001**2  # relative (times Ŝ²)

@@ -17,8 +17,9 @@ def _pose(sc: Scenario, t: float, yaw_deg: float | None = None) -> tuple[np.ndar
     n, e = np.interp(t, kf[:, 0], kf[:, 1]), np.interp(t, kf[:, 0], kf[:, 2])
     yaw = np.interp(t, kf[:, 0], kf[:, 3]) if yaw_deg is None else yaw_deg
     C_body_to_level = euler_to_dcm(0.0, 0.0, np.radians(yaw))
-    ref = np.array([n, e, sc.reference_point_down_m])
-    position = ref + C_body_to_level @ np.array(sc.camera_lever_arm)
+    ref = np.array([n, e, sc.reference_point_down_m])  # the centre of motion, raised
+    lever = np.array(sc.camera_lever_arm) - np.array([*sc.motion_centre_body, 0.0])
+    position = ref + C_body_to_level @ lever
     return (C_body_to_level @ sc.C_camera_to_body).T, position
 
 

@@ -19,8 +19,10 @@ mutually exact:
   times ``wave_period_s``, random phases from the seed) scaled so that the scenario's amplitude
   is that of an equivalent single sinusoid (RMS = amplitude / sqrt 2).
 - The ship rotates about its centre of motion on the waterline (the keyframe reference point,
-  heaving with the sea); the body origin (IMU) hangs ``reference_point_down_m`` above it along
-  the body z axis, so a roll also sways the IMU (and far more a mast-top antenna).
+  heaving with the sea); the body origin (IMU) is fixed to the hull ``reference_point_down_m``
+  above the waterline and at ``-motion_centre_body`` (forward, right) from that centre (directly
+  above it by default), so a roll also sways the IMU (and far more a mast-top antenna) and a
+  turn swings an IMU far from amidships round the centre.
 
 Frame: the scenario's local-level frame, NED at ``origin_llh_deg``, fixed to the Earth (it
 rotates with the Earth; see ``estimator.ins`` for the mechanization in it). Times are seconds
@@ -159,8 +161,9 @@ class ShipMotion:
             raise ValueError("path_keyframes times must increase")
         self.t_min = keys[0, 0] - PAD_S
         self.t_max = keys[-1, 0] + PAD_S
-        # Body origin (IMU) relative to the centre of motion, body axes (it hangs above it).
-        self._lever_origin = np.array([0.0, 0.0, scenario.reference_point_down_m])
+        # Body origin (IMU) relative to the centre of motion, body axes.
+        fwd, right = scenario.motion_centre_body
+        self._lever_origin = np.array([-fwd, -right, scenario.reference_point_down_m])
 
         # Heading: keyframes plus a steady heading through the padding.
         kt = np.concatenate([[self.t_min], keys[:, 0], [self.t_max]])

@@ -24,8 +24,9 @@ class Scenario:
     duration_s: float
     scene_kind: str  # "marina" or "container-terminal": what the renderer builds
     # Ship path: keyframes (t s, north m, east m, yaw deg) of the ship's centre of motion (on
-    # the waterline below the IMU). ``motion.ShipMotion`` passes exactly through them with a C2
-    # heading and the smoothest surge/sway of least sideways speed, and adds wave motion.
+    # the waterline, at ``motion_centre_body`` from the body origin). ``motion.ShipMotion``
+    # passes exactly through them with a C2 heading and the smoothest surge/sway of least
+    # sideways speed, and adds wave motion.
     path_keyframes: tuple[tuple[float, float, float, float], ...]
     reference_point_down_m: float  # mean height of the body origin (IMU) above the sea (negative)
     wave_roll_deg: float
@@ -50,6 +51,10 @@ class Scenario:
     # degrees, switched on when the antenna is within ``mask_range_m`` of the quay face.
     obstructions: tuple[tuple[float, float, float], ...] = ()
     mask_range_m: float = 0.0
+    # (forward, right) of the centre of motion (= the hull centre, amidships on the waterline)
+    # from the body origin, m. (0, 0): the body origin (IMU) is amidships above it; a large
+    # ship has its IMU inside the GNSS-compass unit (thesis fig. 10), far from amidships.
+    motion_centre_body: tuple[float, float] = (0.0, 0.0)
     constellations: tuple[str, ...] = ("G", "E", "J")
     extra: dict = field(default_factory=dict)
 
@@ -70,14 +75,15 @@ class Scenario:
         return corners + c
 
     def hull_outline(self) -> np.ndarray:
-        """Hull polygon (forward, right) in the body frame, bow pointed, body origin amidships."""
+        """Hull polygon (forward, right) in the body frame, bow pointed, centred on the centre
+        of motion (``motion_centre_body``; the body origin when that is (0, 0))."""
         L, B = self.hull_length_m, self.hull_beam_m
         x_bow, x_stern = 0.5 * L, -0.5 * L
         x_shoulder = 0.5 * L - 0.25 * L
         return np.array([
             [x_bow, 0.0], [x_shoulder, 0.5 * B], [x_stern, 0.5 * B],
             [x_stern, -0.5 * B], [x_shoulder, -0.5 * B],
-        ])
+        ]) + np.array(self.motion_centre_body)
 
 
 SMALL_BOAT = Scenario(
@@ -133,6 +139,11 @@ LARGE_SHIP = Scenario(
     scene_kind="container-terminal",
     # Heading east along the quay (quay to port), slowing from ~0.12 m/s while tugs push her
     # sideways north towards it (sway up to ~0.08 m/s) and turn her ~10 deg (<= 0.3 deg/s).
+    # The keyframes are those of the hull centre (amidships); the body origin is the GNSS
+    # compass / IMU unit on the aft mast, 60 m aft of amidships and 26 m above the sea, as in
+    # the thesis' hardware where the IMU sits in the compass unit (fig. 10): the trajectory is
+    # that of the point the carrier phase measures, so a heading error does not swing it round
+    # a 60 m lever arm (0.1 deg of heading = 0.1 m at 60 m).
     path_keyframes=(
         (0.0, -120.0, -32.0, 84.0),
         (30.0, -118.3, -28.6, 88.0),
@@ -140,18 +151,18 @@ LARGE_SHIP = Scenario(
         (90.0, -114.1, -23.1, 92.0),
         (120.0, -112.3, -21.8, 91.0),
     ),
-    reference_point_down_m=-12.0,
+    reference_point_down_m=-25.9,  # the compass/IMU unit, ~26 m above the sea
     wave_roll_deg=0.3,
     wave_pitch_deg=0.1,
     wave_heave_m=0.05,
     wave_period_s=9.0,
-    camera_lever_arm=(-60.0, -10.0, -8.0),  # bridge wing, ~20 m above the sea
+    camera_lever_arm=(0.0, -10.0, 5.9),  # bridge wing below the mast, ~20 m above the sea
     camera_pan_deg=-75.0,  # looking to port, towards the quay
     camera_tilt_deg=10.0,
     camera_size=(960, 600),
     camera_hfov_deg=70.3,
     camera_distortion=(-0.10, 0.03, 0.0, 0.0, 0.0),
-    antenna_centre=(-60.0, 0.0, -14.0),
+    antenna_centre=(0.0, 0.0, -0.1),  # antennas 10 cm above the IMU, in the same unit
     antenna_side_m=0.10,
     hull_length_m=200.0,
     hull_beam_m=32.0,
@@ -160,6 +171,7 @@ LARGE_SHIP = Scenario(
     elevation_mask_deg=10.0,
     obstructions=((300.0, 360.0, 40.0), (0.0, 60.0, 40.0)),
     mask_range_m=150.0,
+    motion_centre_body=(60.0, 0.0),  # amidships, 60 m forward of the compass/IMU unit
 )
 
 SCENARIOS: dict[str, Scenario] = {s.name: s for s in (SMALL_BOAT, LARGE_SHIP)}
