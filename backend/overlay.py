@@ -52,6 +52,9 @@ class TargetInput:
     label: str | None = None
 
 
+PLAN_RANGE_FACTOR = 4.0  # plan points out to this many grid radii (small boat: 120 m)
+
+
 def grid_radius(camera_height_m: float) -> float:
     """Half-size of the water grid: far enough to reach the quay, not so far that 2 m cells
     shrink below a pixel at the horizon (small boat ~1 m → 30 m; large ship ~20 m → 200 m)."""
@@ -207,8 +210,9 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
         "color": hue_color(dist[vis], color_range),
         "id": ids[vis].tolist(),
     }
+    # The plan reaches further than the water grid: the quay must show during the approach.
     horizontal = np.linalg.norm(pts[:, :2] - ship_ne, axis=1)
-    near = np.flatnonzero(horizontal <= radius)
+    near = np.flatnonzero(horizontal <= PLAN_RANGE_FACTOR * radius)
     near = near[np.argsort(horizontal[near])[:MAX_PLAN_POINTS]]
     plan["points"] = {"ne": _round(pts[near, :2], 2), "color": hue_color(dist[near],
                                                                          color_range)}
