@@ -2,21 +2,53 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from fastapi import APIRouter, Response, status
+from pydantic import BaseModel, Field
 
 from .deps import SessionDep, errors
 from .models import (
     BerthLineRequest,
     BerthLineStatus,
     TargetCreate,
-    TargetDetail,
-    TargetList,
-    TargetOut,
-    TrackPoint,
+    Vec2,
 )
+from .models import TargetOut as _TargetOutBase
+from .models import TrackPoint as _TrackPointBase
 from .sessions import Session, Target
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["targets"])
+
+
+# The target models with the image tracking (``estimator.tracking``) added (same names in
+# the OpenAPI schema).
+class TargetOut(_TargetOutBase):
+    status: Literal["tracking", "lost"] = Field(
+        description="tracking: the point is followed in the video in the current frame; lost: "
+                    "it is not (occluded, out of the image, not found again) — the distance "
+                    "is then that of its 3-D point, not of a point seen now")
+    tracked_uv: Vec2 | None = Field(None, description="the tracked image point (distorted px)")
+    score: float | None = Field(None, description="template correlation of the tracked point")
+    reason: str = Field("", description="why the target is lost")
+    distance_sigma_m: float | None = Field(
+        None, description="1-σ of distance_m from the 3-D point's covariance")
+
+
+class TrackPoint(_TrackPointBase):
+    status: Literal["tracking", "lost"] | None = None
+    tracked_uv: Vec2 | None = None
+    score: float | None = None
+    reason: str = ""
+    distance_sigma_m: float | None = None
+
+
+class TargetDetail(TargetOut):
+    track: list[TrackPoint]
+
+
+class TargetList(BaseModel):
+    targets: list[TargetOut]
 
 
 def _target_out(session: Session, target: Target) -> dict:
@@ -33,26 +65,41 @@ def _target_out(session: Session, target: Target) -> dict:
         "distance_m": last["distance_m"] if last else None,
         "hull_distance_m": last["hull_distance_m"] if last else None,
         "visible": last["visible"] if last else None,
+        "status": target.status,
+        "tracked_uv": None if target.tracked_uv is None else [round(float(x), 2)
+                                                              for x in target.tracked_uv],
+        "score": None if target.score is None else round(float(target.score), 3),
+        "reason": target.reason,
+        "distance_sigma_m": None if target.distance_sigma_m is None else round(
+            float(target.distance_sigma_m), 3),
     }
 
 
-@router.post("/targets", response_model=TargetOut, status_code=status.HTTP_201_CREATED,
-             responses=errors(404, 409, 422), summary="Designate a point in the video")
+@router.post("/targets", response_model=TargetOut,
+             status_code=status.HTTP_201_CREATED, responses=errors(404, 409, 422),
+             summary="Designate a point in the video")
 def create_target(body: TargetCreate, session: SessionDep) -> TargetOut:
     """The 3-D point under pixel (u, v) of a frame (``frame_time``, or the current one): from
-    the port-structure points projecting within 12 px of the pixel (median range along the
-    ray; ``method`` = ``structure``), else where the ray meets the water plane (``method`` =
-    ``water-plane``); 422 when neither exists. The target then follows its anchoring
-    structure points and its distance is tracked frame by frame."""
+    the port-structure points projecting within 12 px of the pixel (24 px when fewer than two
+    of them are on the nearest surface; that surface's median range along the ray; ``method``
+    = ``structure``), else where the ray meets the water plane (``method`` = ``water-plane``);
+    422 when neither exists. The point is then tracked in the video frame by frame (particle
+    filter with template matching, ``estimator.tracking``) and its 3-D point refined from the
+    tracked views; ``status`` says whether it is locked in the current frame (``lost`` when
+    occluded, out of the image or not found again where its 3-D point projects)."""
     frame_t = None if body.frame_time == "current" else float(body.frame_time)
     target = session.designate(frame_t, body.u, body.v, body.label)
-    return TargetOut(**_target_out(session, target))
+    with session.lock:
+        out = _target_out(session, target)
+    return TargetOut(**out)
 
 
 @router.get("/targets", response_model=TargetList, responses=errors(404),
             summary="Designated targets")
 def list_targets(session: SessionDep) -> TargetList:
-    return TargetList(targets=[TargetOut(**_target_out(session, t)) for t in session.targets()])
+    with session.lock:
+        outs = [_target_out(session, t) for t in session.targets()]
+    return TargetList(targets=[TargetOut(**o) for o in outs])
 
 
 @router.get("/targets/{target_id}", response_model=TargetDetail, responses=errors(404),

@@ -20,7 +20,7 @@ import re
 import threading
 import time
 import uuid
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +30,9 @@ import cv2
 import numpy as np
 
 from estimator.frames import ecef_to_ned, geodetic_to_ecef, wrap_angle
+from estimator.landmarks import camera_pose_covariance
 from estimator.prediction import predict_outlines
+from estimator.tracking import DesignatedTarget, TargetParams, point_on_ray, structure_point_at
 from recordings.format import Recording, RecordingError, load, summary
 
 from .engine import EngineFactory, FusionEngine
@@ -56,6 +58,9 @@ log = logging.getLogger(__name__)
 RECORDING_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 JPEG_QUALITY = 80
 DESIGNATION_RADIUS_PX = 12.0  # structure points this close to the clicked pixel anchor it
+# (widened to twice this when fewer than two of them are on the nearest surface)
+FRAME_BUFFER = 30  # recent frames kept (3 s): a click on a frame just shown, catch-up
+TARGET_WINDOW_PX = 31  # template side of the image tracker, full-size pixels
 FRAME_MATCH_S = 0.06  # a frame_time matches a stored frame within this (frames are 0.1 s apart)
 
 
@@ -218,10 +223,20 @@ class Target:
     designated_gpst: float  # replay time when designated
     frame_gpst: float  # time of the frame whose pixel was clicked
     uv: tuple[float, float]
-    anchor_ids: np.ndarray  # structure point ids the target follows (empty for water-plane)
+    anchor_ids: np.ndarray  # structure point ids under the click (empty for water-plane)
     anchor_mean: np.ndarray | None  # their mean position when designated
     support: int
     track: list[dict[str, Any]] = field(default_factory=list)
+    # Image tracking (``estimator.tracking.DesignatedTarget``): the clicked point followed in
+    # the video frame by frame, its 3-D point refined from the tracked views; "lost" is shown
+    # (the distance is then that of the 3-D point, not of a point seen in this frame).
+    tracker: DesignatedTarget | None = None
+    frame_index: int = -1  # last frame the tracker has seen
+    status: str = "tracking"  # "tracking" | "lost"
+    tracked_uv: tuple[float, float] | None = None
+    score: float | None = None
+    reason: str = ""
+    distance_sigma_m: float | None = None  # 1-σ of the distance from the 3-D point's covariance
 
 
 @dataclass
@@ -281,12 +296,15 @@ class Session:
         self._latest_state: Any | None = None
         self._targets: dict[str, Target] = {}
         self._target_counter = 0
+        self._frames: deque[tuple[int, float, np.ndarray]] = deque(maxlen=FRAME_BUFFER)
         self.berth_line: BerthLine | None = None
         if rec.hull.berth_line_ned is not None:
             self.berth_line = BerthLine(np.asarray(rec.hull.berth_line_ned, float).reshape(2, 2),
                                         "recording", frame="recording")
         self._subscribers: set[Subscriber] = set()
-        self._last_message: tuple[bytes, bytes | None] | None = None
+        # The last frame played to clients (or that would have been, unwatched): what a client
+        # joining now must see, even while paused.
+        self._current_frame: tuple[FrameResult, Any | None] | None = None
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
         self.replayer = Replayer(
@@ -328,13 +346,16 @@ class Session:
         with self.lock:
             if structure is not None:
                 self._structure, self._structure_t = structure, result.t
+            self._frames.append((result.index, result.t, result.image))
             if state is not None:
                 self._latest_state = state
                 self._times.append(result.t)
                 self._states.append(state)
-                self._update_targets(state)
+                self._update_targets(state, result.index, result.image)
             watched = bool(self._subscribers)
             listeners = list(self.frame_listeners)
+            if result.live:
+                self._current_frame = (result, state)
         if result.live and watched:
             try:
                 self._publish(self._frame_message(result, state))
@@ -354,6 +375,8 @@ class Session:
             for target in self._targets.values():
                 target.track = [p for p in target.track
                                 if t is not None and p["gpst"] <= t]
+                target.frame_index = -2  # the tracker resumes from the projected 3-D point
+            self._frames.clear()
 
     def on_state(self, state: ReplayState) -> None:
         header = json.dumps({"type": "status", "session": self.status_brief()})
@@ -364,11 +387,14 @@ class Session:
     def subscribe(self, subscriber: Subscriber) -> None:
         with self.lock:
             self._subscribers.add(subscriber)
-            last = self._last_message
+            current = self._current_frame
         subscriber.offer(json.dumps({"type": "status",
                                      "session": self.status_brief()}).encode(), None)
-        if last is not None:  # a new client sees the current frame at once (even paused)
-            subscriber.offer(*last)
+        if current is not None:  # a new client sees the current frame at once (even paused)
+            try:
+                subscriber.offer(*self._frame_message(*current))
+            except Exception:
+                log.exception("frame message for a new client failed")
 
     def unsubscribe(self, subscriber: Subscriber) -> None:
         with self.lock:
@@ -381,8 +407,6 @@ class Session:
 
     def _publish(self, message: tuple[bytes, bytes | None]) -> None:
         with self.lock:
-            if message[1] is not None:
-                self._last_message = message
             subscribers = list(self._subscribers)
         for sub in subscribers:
             sub.offer(*message)
@@ -419,6 +443,8 @@ class Session:
             header["overlay"] = build_overlay(state, self.rec.calibration.camera, self.rec.hull,
                                               self.projector, structure, targets, berth,
                                               self.overlay_config)
+            with self.lock:
+                self._tracking_readouts(header["overlay"]["targets"])
         text = json.dumps(header, separators=(",", ":"), allow_nan=False)
         return text[:-1].encode(), jpeg.tobytes()
 
@@ -575,25 +601,28 @@ class Session:
     def designate(self, frame_t: float | None, u: float, v: float, label: str | None
                   ) -> Target:
         """A 3-D point for pixel (u, v) of a frame: from the port-structure points near that
-        image ray, else where the ray meets the water plane."""
+        image ray (the nearest surface under the click, ``structure_point_at``), else where
+        the ray meets the water plane. From that frame on the point is tracked in the video
+        (``estimator.tracking.DesignatedTarget``) and its 3-D point refined from the views."""
         p = self.projector
         if not (-0.5 <= u <= p.width - 0.5 and -0.5 <= v <= p.height - 0.5):
             raise Unprocessable(f"pixel ({u:g}, {v:g}) is outside the {p.width}x{p.height} "
                                 "image")
         state = self.current_state() if frame_t is None else self.frame_state(frame_t)
-        pose = camera_pose(state, self.rec.calibration.camera)
+        cam = self.rec.calibration.camera
+        pose = camera_pose(state, cam)
         ray = p.pixel_ray(pose, u, v)
-        (pts, _sigma, ids), _ = self.structure()
+        focal = 0.5 * float(cam.K[0, 0] + cam.K[1, 1])
+        (pts, sigma, ids), _ = self.structure()
         anchors = np.zeros(0, dtype=int)
         anchor_mean = None
-        visible, uv = p.project_points(pose, pts)
-        near = np.flatnonzero(visible)
-        if len(near):
-            d_px = np.linalg.norm(uv[near] - np.array([u, v]), axis=1)
-            near = near[d_px <= DESIGNATION_RADIUS_PX]
-        if len(near):
-            along = (pts[near] - pose.position_ned) @ ray
-            point = pose.position_ned + float(np.median(along)) * ray
+        found = None
+        if len(pts):
+            _visible, uv = p.project_points(pose, pts)
+            found = structure_point_at(pts, sigma, uv, np.array([u, v]), pose.position_ned, ray,
+                                       focal, DESIGNATION_RADIUS_PX, 2 * DESIGNATION_RADIUS_PX)
+        if found is not None:
+            point, cov, near = found
             method = "structure"
             anchors = np.asarray(ids)[near]
             anchor_mean = pts[near].mean(axis=0)
@@ -602,9 +631,10 @@ class Session:
             if hit is None:
                 raise Unprocessable(
                     f"pixel ({u:g}, {v:g}) has no port-structure point within "
-                    f"{DESIGNATION_RADIUS_PX:g} px and its ray does not meet the water plane "
-                    "(above the horizon)")
+                    f"{2 * DESIGNATION_RADIUS_PX:g} px and its ray does not meet the water "
+                    "plane (above the horizon)")
             point, method = hit, "water-plane"
+            _, cov = point_on_ray(hit[None], None, pose.position_ned, ray, focal)
         with self.lock:
             self._target_counter += 1
             target = Target(id=f"T{self._target_counter}", label=label, method=method,
@@ -612,21 +642,91 @@ class Session:
                                 self._latest_state.time),
                             frame_gpst=float(state.time), uv=(u, v), anchor_ids=anchors,
                             anchor_mean=anchor_mean, support=len(anchors))
+            self._start_tracking(target, state, cov)
             self._targets[target.id] = target
             self._track(target, self._latest_state)
         return target
 
-    def _update_targets(self, state: Any) -> None:
-        """Follow refinements of the anchoring structure points and extend the tracks (called
-        with the lock held)."""
-        pts, _sigma, ids = self._structure
+    def _camera(self, state: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(C_level_to_camera, camera centre, 6x6 pose covariance or None) of a state."""
+        cam = self.rec.calibration.camera
+        pose = camera_pose(state, cam)
+        cov = None
+        p_cov, a_cov = getattr(state, "position_cov", None), getattr(state, "attitude_cov", None)
+        if p_cov is not None and a_cov is not None:
+            lever = np.asarray(state.C_body_to_level, dtype=float) @ np.asarray(
+                cam.lever_arm_body, dtype=float)
+            cov = camera_pose_covariance(p_cov, a_cov, lever)
+            if not np.isfinite(cov).all():
+                cov = None
+        return pose.C_level_to_camera, pose.position_ned, cov
+
+    def _frame_index(self, t: float) -> int:
+        times = np.asarray(self.rec.frame_times, dtype=float)
+        return int(np.argmin(np.abs(times - t)))
+
+    def _start_tracking(self, target: Target, state: Any, cov: np.ndarray) -> None:
+        """The image tracker on the clicked frame, brought up to the latest frame from the
+        frame buffer (called with the lock held; a few ms per buffered frame)."""
+        index = self._frame_index(float(state.time))
+        image = next((img for i, _t, img in self._frames if i == index), None)
+        try:
+            if image is None:
+                image = self.rec.read_frame(index)
+            window = max(15, int(round(TARGET_WINDOW_PX * self.projector.width / 960.0)) | 1)
+            C, c, pose_cov = self._camera(state)
+            target.tracker = DesignatedTarget(
+                self.rec.calibration.camera, image, np.array(target.uv), target.position_ned,
+                cov, C, c, pose_cov, params=TargetParams(window=window),
+                refine=target.method == "structure")
+        except Exception as exc:  # no image tracking: the target keeps its 3-D point, lost
+            log.exception("the image tracker of target %s could not start", target.id)
+            target.tracker, target.status = None, "lost"
+            target.reason = f"image tracking unavailable: {exc}"
+            return
+        target.frame_index = index
+        target.tracked_uv, target.score = target.uv, 1.0
+        for i, t, img in list(self._frames):
+            if i > target.frame_index:
+                st = self.state_at_gpst(t)
+                if st is not None:
+                    self._follow(target, st, i, img)
+
+    def state_at_gpst(self, t: float) -> Any | None:
+        """The stored state of the frame at gpst ``t`` (None when there is none)."""
+        i = bisect.bisect_left(self._times, t - 1e-6)
+        if i < len(self._times) and abs(self._times[i] - t) < 1e-6:
+            return self._states[i]
+        return None
+
+    def _follow(self, target: Target, state: Any, index: int, image: np.ndarray) -> None:
+        """One frame of a target's image tracking (lock held)."""
+        tr = target.tracker
+        if tr is None or index == target.frame_index:
+            return
+        try:
+            C, c, cov = self._camera(state)
+            if index == target.frame_index + 1:
+                st = tr.update(image, C, c, cov)
+            else:  # a seek or a gap: take it back where its 3-D point projects
+                st = tr.resume(image, C, c, cov)
+        except Exception:  # a tracking failure must not stop the replay
+            log.exception("tracking target %s failed on frame %d", target.id, index)
+            target.status, target.reason = "lost", "tracking failed"
+            target.frame_index = -2
+            return
+        target.frame_index = index
+        target.position_ned = st.position_ned
+        target.status = st.status
+        target.tracked_uv = None if st.uv is None else (float(st.uv[0]), float(st.uv[1]))
+        target.score = st.score
+        target.reason = st.reason
+        target.distance_sigma_m = st.distance_sigma_m
+
+    def _update_targets(self, state: Any, index: int, image: np.ndarray) -> None:
+        """Track every target in the new frame and extend the tracks (lock held)."""
         for target in self._targets.values():
-            if len(target.anchor_ids) and len(ids):
-                mask = np.isin(ids, target.anchor_ids)
-                if mask.sum() * 2 >= len(target.anchor_ids):  # enough anchors still mapped
-                    target.position_ned = target.position_ned + (pts[mask].mean(axis=0)
-                                                                 - target.anchor_mean)
-                    target.anchor_mean = pts[mask].mean(axis=0)
+            self._follow(target, state, index, image)
             self._track(target, state)
 
     def _track(self, target: Target, state: Any) -> None:
@@ -638,6 +738,13 @@ class Session:
             "position_ned": np.round(target.position_ned, 4).tolist(),
             "visible": bool(visible[0]),
             "uv": np.round(uv[0], 2).tolist() if visible[0] else None,
+            "status": target.status,
+            "tracked_uv": None if target.tracked_uv is None else
+            [round(target.tracked_uv[0], 2), round(target.tracked_uv[1], 2)],
+            "score": None if target.score is None else round(float(target.score), 3),
+            "reason": target.reason,
+            "distance_sigma_m": None if target.distance_sigma_m is None else
+            round(float(target.distance_sigma_m), 3),
         }
         entry.update(target_readout(target.position_ned, pose, hull_outline_ne(state,
                                                                                self.rec.hull)))
@@ -645,6 +752,24 @@ class Session:
             target.track[-1] = entry
         else:
             target.track.append(entry)
+
+    def _tracking_readouts(self, readouts: list[dict[str, Any]]) -> None:
+        """The overlay's target readouts with the image tracking: drawn at the tracked point,
+        and a lost one not drawn on the video, its label saying so (lock held)."""
+        for entry in readouts:
+            target = self._targets.get(entry.get("id"))
+            if target is None:
+                continue
+            entry["status"] = target.status
+            entry["distance_sigma_m"] = None if target.distance_sigma_m is None else \
+                round(float(target.distance_sigma_m), 3)
+            if target.status == "tracking" and target.tracked_uv is not None:
+                entry["uv"] = [round(target.tracked_uv[0], 1), round(target.tracked_uv[1], 1)]
+                entry["visible"] = True
+            elif target.status == "lost":
+                entry["visible"], entry["uv"] = False, None
+                entry["label"] = f"{target.label or target.id} (lost)"
+                entry["reason"] = target.reason
 
     def targets(self) -> list[Target]:
         with self.lock:

@@ -35,6 +35,10 @@ VO: each VO world (``VoOutput.segment``) is mapped into L once the camera has mo
 since its first tracked frame (the first scale is the INS displacement over the VO one); from
 then on every tracked frame updates the EKF (Θ, d) and the map points are carried into L with
 the current scale and drift estimates (``structure``). A lost segment's points are frozen in L.
+Every tracked frame also feeds the landmark EKFs (``estimator.landmarks``, seed 000): each map
+point seen is one EKF in L, seeded from its mapped VO point and updated with its pixel and the
+fused camera pose and covariance; ``structure`` gives the refined point once it has
+``LandmarkParams.min_views`` views (``structure(refined=False)``: the raw points).
 
 Performance: the matrices are small (≈ 40 states, ≈ 120 carrier-phase rows per epoch); a
 multi-threaded BLAS costs more than it gains at these sizes, so run the process with
@@ -49,6 +53,7 @@ from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from .compass import GnssCompass, tilt_from_specific_force
@@ -82,6 +87,7 @@ from .frames import (
     rotvec_to_dcm,
 )
 from .ins import Ins, InsState, calibration_matrices
+from .landmarks import LandmarkMap, LandmarkParams, camera_pose_covariance
 from .records import Calibration, GnssEpoch, NavigationData
 from .spp import standalone_position
 from .vo import VisualOdometry, VoOutput
@@ -115,6 +121,10 @@ class FusionOptions:
     # (receivers not listed keep theirs).
     per_receiver_sats: dict[int, list[str]] | None = None
     ekf: EkfConfig | None = None  # tuning of the EKF (defaults when None)
+    # Port-structure refinement (``estimator.landmarks``): a landmark EKF per VO point, fed
+    # with every view and the fused camera pose; refined points replace the raw ones in
+    # ``structure`` once they have ``landmarks.min_views`` views. None: raw points only.
+    landmarks: LandmarkParams | None = field(default_factory=LandmarkParams)
 
 
 @dataclass
@@ -302,6 +312,12 @@ class Fusion:
         self._points: dict[int, tuple[int, np.ndarray]] = {}  # id → (segment, X_W)
         self._frozen: dict[int, np.ndarray] = {}  # id → L point of ended segments
         self._frozen_sigma: dict[int, float] = {}
+        cam = calibration.camera
+        self.landmarks: LandmarkMap | None = None
+        if self.vo is not None and opt.landmarks is not None:
+            self.landmarks = LandmarkMap(0.5 * (cam.K[0, 0] + cam.K[1, 1]), opt.landmarks)
+        self._K = np.asarray(cam.K, float)
+        self._dist = np.asarray(cam.distortion, float).ravel()
 
     # ------------------------------------------------------------------ public inputs
 
@@ -410,8 +426,10 @@ class Fusion:
                             satellites=self._n_sats, vo_status=self._vo_status, scale=scale,
                             scale_converged=converged, message=self._message)
 
-    def structure(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Port-structure points in L (scaled, drift-corrected), their 1-σ (m), ids."""
+    def structure(self, refined: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Port-structure points in L (scaled, drift-corrected), their 1-σ (m), ids. With
+        ``refined`` (and the landmark refinement on) a point whose landmark EKF has enough
+        views is its refined position, its σ the RMS per axis of the landmark covariance."""
         ids, pts, sig = [], [], []
         for pid, p in self._frozen.items():
             ids.append(pid)
@@ -428,11 +446,16 @@ class Fusion:
                 ids.extend(c[0] for c in cur)
         if not ids:
             return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
-        return np.array(pts), np.array(sig), np.array(ids, np.int64)
+        pts_a, sig_a, ids_a = np.array(pts), np.array(sig), np.array(ids, np.int64)
+        if refined and self.landmarks is not None:
+            ok, xyz, cov = self.landmarks.get(ids_a)
+            pts_a[ok] = xyz[ok]
+            sig_a[ok] = np.sqrt(np.trace(cov[ok], axis1=1, axis2=2) / 3.0)
+        return pts_a, sig_a, ids_a
 
     def timing(self) -> dict[str, float]:
         """Milliseconds per call by stage ('imu', 'gnss', 'frame', 'vo', 'compass',
-        'gnss_update', 'vo_update', 'start')."""
+        'gnss_update', 'vo_update' (which includes 'landmarks'), 'landmarks', 'start')."""
         return self._timer.report()
 
     # ------------------------------------------------------------------ scheduling
@@ -805,6 +828,42 @@ class Fusion:
             self._vo_anchor = None
             return
         ekf.update_vo(out.C_world_to_camera, p)
+        if self.landmarks is not None:
+            t0 = _time.perf_counter()
+            self._refine_landmarks(out)
+            self._timer.add("landmarks", _time.perf_counter() - t0)
+
+    def _refine_landmarks(self, out: VoOutput) -> None:
+        """One view of the landmark EKFs (``estimator.landmarks``): the map points seen in this
+        frame (new ones seeded from the VO point mapped into L) with the fused camera pose and
+        its covariance at the frame time."""
+        ekf, lm = self.ekf, self.landmarks
+        assert ekf is not None and ekf.vo is not None and lm is not None
+        ids, uv = out.observations
+        ids = np.asarray(ids, np.int64)
+        if len(ids) == 0:
+            return
+        ekf.flush()
+        ix, P = ekf.ix, ekf.P
+        C_bl = ekf.nominal.C_body_to_level
+        C_lc = (C_bl @ ekf.C_camera_to_body).T
+        p_cam = ekf.camera_position()
+        pose_cov = camera_pose_covariance(P[ix.R, ix.R], P[ix.E, ix.E], C_bl @ ekf.lever_camera,
+                                          P[ix.R, ix.E])
+        new = np.flatnonzero(~lm.known(ids))
+        if len(new):
+            # out.point_ids is sorted (the VO's map is kept sorted by id).
+            pid = np.asarray(out.point_ids, np.int64)
+            pos = np.clip(np.searchsorted(pid, ids[new]), 0, max(len(pid) - 1, 0))
+            have = (pos < len(pid)) & (pid[pos] == ids[new]) if len(pid) else \
+                np.zeros(len(new), bool)
+            if have.any():
+                Xw = np.asarray(out.points_world, float)[pos[have]]
+                lm.seed_from_view(ids[new[have]], ekf.vo_to_level(Xw), p_cam,
+                                  ekf.vo_point_sigma(Xw), time=out.time)
+        pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        xy = cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
+        lm.update(out.time, C_lc, p_cam, pose_cov, ids, xy)
 
     def _freeze_segment(self) -> None:
         """Keep the points of an ended VO segment in L as they were last mapped."""

@@ -466,6 +466,10 @@ def test_pause_seek_and_delete(live: Live, replayed: dict):
         assert client.get(f"{base}/trajectory").json()["t"][-1] == pytest.approx(4.0, abs=0.011)
         time.sleep(0.3)
         assert client.get(base).json()["time_s"] == status["time_s"]  # paused means paused
+        # A client joining the paused session sees the current frame at once, not a stale one.
+        joined, _ = asyncio.run(_collect(f"{live.ws}/api/sessions/{sid}/stream",
+                                         lambda f, s: len(f) >= 1, timeout=10))
+        assert joined[0].header["t"] == pytest.approx(4.0, abs=0.051)
         assert client.get(f"{base}/pose", params={"t": 6.0}).status_code == 409  # not yet
         for body in ({"action": "seek"}, {"action": "fly"}, {"action": "seek", "time": 500},
                      {"action": "speed", "speed": 0}, {"action": "speed", "speed": "fast"},

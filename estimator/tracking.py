@@ -1,0 +1,854 @@
+"""Designated-target tracking in the video: particle filter of seed 002 (SPEC section 7).
+
+The officer clicks a point of the quay; its image position must stay locked on it frame by
+frame while the ship moves, and a lost lock must be SAID, never replaced by a wrong point.
+Seed 002 (Nishida et al., CAMSHIFT-guided particle filter with adaptive template matching and
+optical-flow camera-motion compensation) does exactly this for a target seen by a moving
+underwater camera. Its state is the window ``x_k = (p_k, s_k)`` (centre, size; the size is
+kept at the initial ``s_0``), represented by M weighted particles. Per frame (its fig. 5):
+
+- Step 1, sampling (eq. 13–15): every particle is moved by the mean optical flow ``ō`` of the
+  scene — good features to track (Shi–Tomasi) followed by pyramidal Lucas–Kanade between the
+  previous and the current frame — plus Gaussian spread ``N(0, σ_D² I)``; then refined by
+  CAMSHIFT (mean shift with the window size frozen at ``s_0``, its appendix) on the
+  back-projection ``B_k`` of the current hue image with the initial region's hue histogram
+  ``H_0``.
+- Step 2, weighting (eq. 19): ``π = exp(−‖p̂ − p‖ / σ_o²)`` with ``p̂`` the best normalised
+  correlation (``TM_CCOEFF_NORMED``) match of the current template ``T_k``; σ_o = 10, σ_D = 5 px,
+  20 particles as in the paper.
+- Step 3, resampling (eq. 20, systematic), the MAP particle as the estimate (eq. 22–23), and
+  template adaptation at the estimate (eq. 9).
+- Loss of track from the correlation score (its section 3.5: "judge the reliability from
+  N_k(x, y) and stop when the target is lost").
+
+Adaptations to a quay point tracked for minutes from a ship (documented deviations):
+
+- The flow is taken from features AROUND the target (a window a few templates wide), robust
+  mean (inliers within a few MADs of the median, forward–backward checked): the camera
+  translates, so the flow of the distant scene or of the water is not the target's.
+- A click is a point, not an object: the colour window CAMSHIFT converges to is not centred on
+  it (a click on the corner of a blue board converges on the board). The particles carry the
+  point; their colour windows sit at the offset the clicked window converged to at ``init``.
+- ``σ_o²`` in eq. 19 makes the likelihood very flat (all particles within a few pixels weigh
+  alike); the MAP particle is then simply the particle nearest ``p̂``. The reported point is
+  ``p̂`` (sub-pixel) when the MAP particle confirms it (within ``snap_px`` or twice the
+  cloud's RMS spread); away from it the MAP particle is kept only when its own correlation is
+  within ``ambiguity_margin`` of p̂'s (two similar places: continuity decides, the paper's
+  case), else p̂ if it correlates at least ``reacquire_score`` (the cloud drifted), else the
+  target is lost (a jump to a weak match: an occlusion). The resampled cloud moves with that
+  snap (part of the proposal) so that it does not random-walk off the target.
+- Template adaptation (eq. 9) every frame re-cuts the template around an estimate that has
+  pixel-level noise, and the template then random-walks off the clicked point. The template
+  is adapted only when the correlation is high enough to be the same point and low enough
+  to show a change of appearance (``adapt_min_score ≤ N < adapt_max_score``), and the
+  estimate is first drift-corrected: the central part of the FIRST template (``anchor_size``:
+  less of the background, which moves differently from a quay-edge target) is aligned to the
+  frame by an affine ECC warp, accepted when good and within ``anchor_max_shift_px``.
+- Loss: ``N`` below ``lost_score``, or the estimate leaving the image. When lost, ``update``
+  keeps dead-reckoning the point with the flow and only reports ``tracking`` again when the
+  template is found again with ``reacquire_score``; ``reacquire(image, uv_pred)`` searches
+  around a predicted position (the target's 3-D point projected with the fused pose).
+
+``method`` selects the full method or the two ablations of the paper's fig. 7: ``template``
+(adaptive template matching alone, searched around the previous position) and
+``camshift_pf`` (the CAMSHIFT-guided particle filter alone: no flow, particles weighted by
+the Bhattacharyya similarity of their hue histogram to ``H_0``).
+
+Images are BGR (or grey) uint8, coordinates are distorted pixels (x right, y down; the centre
+of the top-left pixel is (0, 0)).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from filterpy.monte_carlo import systematic_resample
+
+from .landmarks import LandmarkMap, LandmarkParams, ray_prior
+from .records import CameraCalibration
+
+METHODS = ("full", "template", "camshift_pf")
+
+
+@dataclass
+class TrackerParams:
+    n_particles: int = 20  # M (seed 002: no gain beyond 20)
+    sigma_d_px: float = 5.0  # σ_D, spread of the sampling (eq. 13)
+    sigma_o: float = 10.0  # σ_o of the likelihood exp(−‖p̂ − p‖/σ_o²) (eq. 19)
+    n_features: int = 200  # good features to track for the mean flow
+    flow_region: float = 5.0  # features within this many window sizes around the target
+    flow_min_features: int = 8  # fewer inliers: the whole image's features are used
+    search_px: int = 24  # template search margin around the predicted position
+    lost_search_px: int = 48  # ... while lost (dead-reckoned position)
+    lost_score: float = 0.55  # N below this: target lost
+    reacquire_score: float = 0.75  # N needed to take a lost target back
+    adapt_min_score: float = 0.8  # template adapted only above this (same point) ...
+    adapt_max_score: float = 0.95  # ... and below this (its appearance has changed)
+    snap_px: float = 8.0  # MAP particle snapped onto p̂ when closer than this ...
+    snap_spread: float = 2.0  # ... or than this many RMS spreads of the particle cloud
+    ambiguity_margin: float = 0.1  # MAP particle kept over a far p̂ scoring at most this more
+    hue_bins: int = 16  # H_0 histogram bins
+    min_saturation: int = 40  # pixels with less saturation / value carry no hue
+    min_value: int = 30
+    camshift_iterations: int = 10
+    camshift_min_mass: float = 0.05  # mean back-projection (0..1) a window needs to move
+    edge_margin_px: float = 2.0  # estimate within this of the border: out of the image
+    bhattacharyya_sigma: float = 0.2  # camshift_pf likelihood exp(−(1 − ρ)/σ)
+    # Drift correction: the estimate is refined by aligning the FIRST template T_0 (affine,
+    # ECC) to the frame; accepted when the alignment is this good and this close.
+    anchor_first_template: bool = True
+    anchor_min_ecc: float = 0.8
+    anchor_max_shift_px: float = 3.0
+    anchor_size: float = 0.6  # part of the window (centred) aligned: less background
+
+
+@dataclass
+class TrackResult:
+    uv: np.ndarray | None  # (2,) estimated image point, None when lost
+    score: float  # normalised correlation N of the template at the estimate (−1..1)
+    status: str  # "tracking" | "lost"
+    particles: np.ndarray  # (M,2) particle centres after resampling
+    uv_match: np.ndarray | None = None  # p̂, the best template match
+    flow: np.ndarray | None = None  # ō, mean optical flow used for the sampling
+    reason: str = ""  # why lost
+
+
+class TargetTracker:
+    """Tracks one designated image point (see the module docstring)."""
+
+    def __init__(self, params: TrackerParams | None = None, method: str = "full",
+                 seed: int | None = None) -> None:
+        if method not in METHODS:
+            raise ValueError(f"unknown tracking method {method!r}; one of {METHODS}")
+        self.params = params or TrackerParams()
+        self.method = method
+        self.rng = np.random.default_rng(seed)
+        self.window: tuple[int, int] = (31, 31)
+        self.status = "lost"
+        self.uv: np.ndarray | None = None  # last estimate (or dead-reckoned point when lost)
+        self.particles = np.zeros((0, 2))
+        self.template: np.ndarray | None = None
+        self.template0: np.ndarray | None = None  # T_0 (float32) for the drift correction
+        self._warp0 = np.zeros((2, 3), np.float32)  # T_0 coordinates → image
+        self.anchored = 0  # frames whose estimate the T_0 alignment refined
+        self.hist: np.ndarray | None = None
+        self._ms_offset = np.zeros(2)  # CAMSHIFT window centre − target point
+        self._prev_gray: np.ndarray | None = None
+        self.frames = 0
+        self.adaptations = 0
+
+    # ------------------------------------------------------------------ public interface
+
+    def init(self, image: np.ndarray, uv: tuple[float, float] | np.ndarray,
+             window: int | tuple[int, int] = 31) -> TrackResult:
+        """Start on ``uv`` of ``image`` with a ``window`` (odd side, or (w, h)) template."""
+        w, h = (window, window) if isinstance(window, int | np.integer) else window
+        self.window = (int(w) | 1, int(h) | 1)  # odd, so the centre is a pixel (seed 002)
+        gray = _gray(image)
+        size = np.array(gray.shape[::-1], float)
+        p = np.asarray(uv, float).reshape(2)
+        if not self._inside(p, size):
+            raise ValueError(f"point ({p[0]:.1f}, {p[1]:.1f}) is not inside the "
+                             f"{int(size[0])}x{int(size[1])} image")
+        self.template = _crop(gray, p, self.window)
+        aw = int(round(self.params.anchor_size * self.window[0])) | 1
+        ah = int(round(self.params.anchor_size * self.window[1])) | 1
+        self.template0 = _crop(gray, p, (aw, ah)).astype(np.float32)
+        c0 = 0.5 * (np.array([aw, ah], float) - 1.0)
+        self._warp0 = np.array([[1.0, 0.0, p[0] - c0[0]], [0.0, 1.0, p[1] - c0[1]]], np.float32)
+        self.hist = self._hue_histogram(image, p)
+        # The colour window CAMSHIFT converges to is not centred on the clicked point (a
+        # corner of a blue board converges to the board): the particles carry the point, the
+        # windows are offset from it by where mean shift puts the clicked window now.
+        self._ms_offset = np.zeros(2)
+        self._ms_offset = self._camshift(image, p[None])[0] - p
+        self.particles = np.repeat(p[None], self.params.n_particles, axis=0)
+        self.uv = p.copy()
+        self.status = "tracking"
+        self._prev_gray = gray
+        self.frames = 0
+        return TrackResult(uv=p.copy(), score=1.0, status="tracking",
+                           particles=self.particles.copy(), uv_match=p.copy(),
+                           flow=np.zeros(2))
+
+    def update(self, image: np.ndarray) -> TrackResult:
+        """One new frame (the next one after the last ``init``/``update``)."""
+        if self.template is None or self._prev_gray is None or self.uv is None:
+            raise RuntimeError("TargetTracker.update before init")
+        gray = _gray(image)
+        self.frames += 1
+        if self.method == "template":
+            res = self._update_template(gray)
+        elif self.method == "camshift_pf":
+            res = self._update_camshift_pf(image, gray)
+        else:
+            res = self._update_full(image, gray)
+        self._prev_gray = gray
+        return res
+
+    def reacquire(self, image: np.ndarray, uv_pred: np.ndarray | tuple[float, float],
+                  radius_px: float = 30.0, min_score: float | None = None) -> TrackResult:
+        """Look for the target's last good template within ``radius_px`` of ``uv_pred`` (its
+        3-D point projected with the fused pose) in ``image`` — the frame of the last
+        ``update`` (or a newer one: the flow state is reset to it). Takes the target back
+        when the correlation reaches ``min_score`` (default ``reacquire_score``); otherwise
+        it stays lost."""
+        if self.template is None:
+            raise RuntimeError("TargetTracker.reacquire before init")
+        gray = _gray(image)
+        self._prev_gray = gray
+        p = self.params
+        need = p.reacquire_score if min_score is None else float(min_score)
+        pred = np.asarray(uv_pred, float).reshape(2)
+        size = np.array(gray.shape[::-1], float)
+        match = _match(gray, self.template, pred, int(math.ceil(radius_px)))
+        if match is not None and match[1] >= need and self._inside(match[0], size):
+            q = match[0]
+            self.particles = q + self.rng.normal(0.0, 0.5 * p.sigma_d_px,
+                                                 (p.n_particles, 2))
+            self.uv = q.copy()
+            self.status = "tracking"
+            return TrackResult(uv=q.copy(), score=match[1], status="tracking",
+                               particles=self.particles.copy(), uv_match=q.copy())
+        self.status = "lost"
+        if self._inside(pred, size):
+            self.uv = pred.copy()
+        score = -1.0 if match is None else match[1]
+        return TrackResult(uv=None, score=score, status="lost", particles=self.particles.copy(),
+                           uv_match=None if match is None else match[0],
+                           reason="not found near the predicted position")
+
+    def hold(self, image: np.ndarray, reason: str = "lost") -> TrackResult:
+        """Mark the target lost on ``image`` (the next ``update`` follows from it)."""
+        self._prev_gray = _gray(image)
+        self.status = "lost"
+        return TrackResult(uv=None, score=-1.0, status="lost", particles=self.particles.copy(),
+                           reason=reason)
+
+    # --------------------------------------------------------------------- full method
+
+    def _update_full(self, image: np.ndarray, gray: np.ndarray) -> TrackResult:
+        p = self.params
+        size = np.array(gray.shape[::-1], float)
+        flow = self._mean_flow(self._prev_gray, gray, self.uv)
+        # Step 1: sampling — camera motion from the flow, spread σ_D, CAMSHIFT on B_k.
+        cloud = self.particles + flow + self.rng.normal(0.0, p.sigma_d_px, self.particles.shape)
+        cloud = self._camshift(image, cloud)
+        predicted = self.uv + flow
+        if self.status == "lost":
+            return self._lost_step(gray, predicted, cloud, flow, size)
+        # Step 2: weights from the best normalised-correlation match p̂ (eq. 19).
+        match = _match(gray, self.template, predicted, p.search_px + int(2 * p.sigma_d_px))
+        if match is None:
+            return self._declare_lost(predicted, cloud, flow, size, -1.0, "no match window")
+        p_hat, score = match
+        d = np.linalg.norm(cloud - p_hat, axis=1)
+        weights = np.exp(-d / p.sigma_o**2)
+        weights /= weights.sum()
+        # MAP particle (eq. 22–23), before the weights are equalised by the resampling.
+        p_map = cloud[int(np.argmax(weights))]
+        self.particles = cloud[resample_indexes(weights)]
+        # p̂ is taken when the MAP hypothesis confirms it (within the cloud's own spread); away
+        # from it, the MAP particle only when its own correlation is nearly as good — two
+        # similar-looking places (seed 002's case), where continuity decides — not when the
+        # cloud has merely drifted off a clearly better match.
+        spread = float(np.sqrt(np.mean(np.sum((cloud - cloud.mean(axis=0)) ** 2, axis=1))))
+        gate = max(p.snap_px, p.snap_spread * spread)
+        est = p_hat
+        if np.linalg.norm(p_hat - p_map) > gate:
+            n_map = _score_at(gray, self.template, p_map) if self._inside(p_map, size) \
+                else -1.0
+            if n_map >= score - p.ambiguity_margin:
+                est = p_map
+            elif score < p.reacquire_score:  # a jump to a weak match: an occlusion, say
+                return self._declare_lost(predicted, self.particles, flow, size, score,
+                                          "the best match jumped away with a weak correlation")
+        # The snap is part of the proposal: the posterior cloud moves with it, so the MAP
+        # hypothesis stays on the target instead of the cloud random-walking off it.
+        self.particles = self.particles + (est - p_map)
+        if not self._inside(est, size):
+            return self._declare_lost(est, self.particles, flow, size, score,
+                                      "left the image")
+        n_est = score if est is p_hat else _score_at(gray, self.template, est)
+        if n_est >= p.lost_score:
+            est = self._anchor(gray, est)
+        if n_est < p.lost_score:
+            return self._declare_lost(predicted, self.particles, flow, size, n_est,
+                                      "correlation below the loss threshold")
+        self._adapt(gray, est, n_est)
+        self.uv = est.copy()
+        return TrackResult(uv=est.copy(), score=float(n_est), status="tracking",
+                           particles=self.particles.copy(), uv_match=p_hat.copy(), flow=flow)
+
+    def _lost_step(self, gray: np.ndarray, predicted: np.ndarray, cloud: np.ndarray,
+                   flow: np.ndarray, size: np.ndarray) -> TrackResult:
+        """While lost: dead-reckon with the flow; come back only on a confident match."""
+        p = self.params
+        self.particles = cloud
+        match = _match(gray, self.template, predicted, p.lost_search_px)
+        if match is not None and match[1] >= p.reacquire_score and self._inside(match[0], size):
+            q = match[0]
+            self.particles = q + self.rng.normal(0.0, 0.5 * p.sigma_d_px, cloud.shape)
+            self.uv = q.copy()
+            self.status = "tracking"
+            return TrackResult(uv=q.copy(), score=match[1], status="tracking",
+                               particles=self.particles.copy(), uv_match=q.copy(), flow=flow)
+        self.uv = predicted
+        return TrackResult(uv=None, score=-1.0 if match is None else match[1], status="lost",
+                           particles=self.particles.copy(),
+                           uv_match=None if match is None else match[0], flow=flow,
+                           reason="lost: waiting for the template to reappear")
+
+    def _declare_lost(self, where: np.ndarray, particles: np.ndarray, flow: np.ndarray,
+                      size: np.ndarray, score: float, reason: str) -> TrackResult:
+        self.status = "lost"
+        self.particles = particles
+        self.uv = np.asarray(where, float).copy()
+        return TrackResult(uv=None, score=float(score), status="lost",
+                           particles=particles.copy(), uv_match=None, flow=flow, reason=reason)
+
+    # ---------------------------------------------------------------------- ablations
+
+    def _update_template(self, gray: np.ndarray) -> TrackResult:
+        """Adaptive template matching alone (seed 002 fig. 7 "適応パターンマッチングのみ")."""
+        p = self.params
+        size = np.array(gray.shape[::-1], float)
+        radius = p.search_px if self.status == "tracking" else p.lost_search_px
+        match = _match(gray, self.template, self.uv, radius + int(2 * p.sigma_d_px))
+        empty = np.zeros((0, 2))
+        if match is None:
+            return self._declare_lost(self.uv, empty, np.zeros(2), size, -1.0, "no match window")
+        q, score = match
+        need = p.lost_score if self.status == "tracking" else p.reacquire_score
+        if score < need or not self._inside(q, size):
+            return self._declare_lost(self.uv, empty, np.zeros(2), size, score,
+                                      "correlation below the loss threshold")
+        self.status = "tracking"
+        q = self._anchor(gray, q)
+        self._adapt(gray, q, score)
+        self.uv = q.copy()
+        return TrackResult(uv=q.copy(), score=score, status="tracking", particles=empty,
+                           uv_match=q.copy())
+
+    def _update_camshift_pf(self, image: np.ndarray, gray: np.ndarray) -> TrackResult:
+        """The CAMSHIFT-guided particle filter alone (CAMSGPF, seed 002 fig. 7): spread and
+        CAMSHIFT sampling, weights from the hue-histogram similarity to H_0, MAP particle; the
+        correlation with the (initial) template only reports the score and the loss."""
+        p = self.params
+        size = np.array(gray.shape[::-1], float)
+        cloud = self.particles + self.rng.normal(0.0, p.sigma_d_px, self.particles.shape)
+        cloud = self._camshift(image, cloud)
+        rho = np.array([self._bhattacharyya(image, c) for c in cloud])
+        weights = np.exp(-(1.0 - rho) / p.bhattacharyya_sigma)
+        weights = weights / weights.sum() if weights.sum() > 0 else np.full(len(cloud),
+                                                                            1.0 / len(cloud))
+        est = cloud[int(np.argmax(weights))].copy()
+        self.particles = cloud[resample_indexes(weights)]
+        score = _score_at(gray, self.template, est) if self._inside(est, size) else -1.0
+        self.uv = est
+        if not self._inside(est, size) or score < p.lost_score:
+            self.status = "lost"
+            return TrackResult(uv=None, score=float(score), status="lost",
+                               particles=self.particles.copy(),
+                               reason="correlation below the loss threshold")
+        self.status = "tracking"
+        return TrackResult(uv=est.copy(), score=float(score), status="tracking",
+                           particles=self.particles.copy())
+
+    # ------------------------------------------------------------------------ pieces
+
+    def _inside(self, q: np.ndarray, size: np.ndarray) -> bool:
+        m = self.params.edge_margin_px + 0.5 * np.array(self.window, float)
+        return bool(np.all(q >= m - 0.5) and np.all(q <= size - 0.5 - m))
+
+    def _anchor(self, gray: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Drift correction of the adaptive template: align T_0 to the frame (affine ECC,
+        started at the last alignment moved onto ``q``) and return the point it puts the
+        clicked pixel at, when the alignment is good and near ``q``; ``q`` otherwise."""
+        p = self.params
+        if not p.anchor_first_template or self.template0 is None:
+            return q
+        th, tw = self.template0.shape
+        c0 = 0.5 * (np.array([tw, th], float) - 1.0)
+        A = self._warp0[:, :2].astype(float)
+        t = q - A @ c0
+        corners = np.array([[0.0, 0.0], [tw - 1.0, 0.0], [0.0, th - 1.0],
+                            [tw - 1.0, th - 1.0]]) @ A.T + t
+        margin = 2.0 * p.anchor_max_shift_px + 4.0
+        x0, y0 = np.floor(corners.min(axis=0) - margin).astype(int)
+        x1, y1 = np.ceil(corners.max(axis=0) + margin).astype(int)
+        H, W = gray.shape
+        if x0 < 0 or y0 < 0 or x1 >= W or y1 >= H:
+            return q
+        roi = gray[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
+        warp = np.hstack([A, (t - np.array([x0, y0], float))[:, None]]).astype(np.float32)
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-3)
+        try:
+            ecc, warp = cv2.findTransformECC(self.template0, roi, warp, cv2.MOTION_AFFINE, crit,
+                                             None, 1)
+        except cv2.error:  # did not converge (texture-less, occluded)
+            return q
+        A2 = warp[:, :2].astype(float)
+        sv = np.linalg.svd(A2, compute_uv=False)
+        centre = A2 @ c0 + warp[:, 2].astype(float) + np.array([x0, y0], float)
+        if ecc < p.anchor_min_ecc or np.linalg.norm(centre - q) > p.anchor_max_shift_px \
+                or sv.min() < 0.3 or sv.max() > 4.0:
+            return q
+        self._warp0 = np.hstack([A2, (centre - A2 @ c0)[:, None]]).astype(np.float32)
+        self.anchored += 1
+        return centre
+
+    def _adapt(self, gray: np.ndarray, q: np.ndarray, score: float) -> None:
+        """Template adaptation (eq. 9, size kept at s_0) when the match is the same point
+        with a changed appearance."""
+        p = self.params
+        if p.adapt_min_score <= score < p.adapt_max_score:
+            self.template = _crop(gray, q, self.window)
+            self.adaptations += 1
+
+    def _mean_flow(self, prev: np.ndarray, cur: np.ndarray, around: np.ndarray) -> np.ndarray:
+        """ō: robust mean LK flow of good features around ``around`` (whole image if few)."""
+        p = self.params
+        h, w = prev.shape
+        half = 0.5 * p.flow_region * np.array(self.window, float)
+        for region in (half, None):
+            if region is None:
+                x0, y0, x1, y1 = 0, 0, w, h
+            else:
+                x0 = int(max(0, around[0] - region[0]))
+                y0 = int(max(0, around[1] - region[1]))
+                x1 = int(min(w, around[0] + region[0] + 1))
+                y1 = int(min(h, around[1] + region[1] + 1))
+                if x1 - x0 < 16 or y1 - y0 < 16:
+                    continue
+            pts = cv2.goodFeaturesToTrack(prev[y0:y1, x0:x1], p.n_features, 0.01, 5)
+            if pts is None or len(pts) < p.flow_min_features:
+                continue
+            pts = pts.reshape(-1, 2) + np.array([x0, y0], np.float32)
+            flow = _lk_flow(prev, cur, pts)
+            if len(flow) >= p.flow_min_features:
+                return _robust_mean(flow)
+        return np.zeros(2)
+
+    def _hue(self, image: np.ndarray, box: tuple[int, int, int, int]
+             ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Hue and validity mask of the box (x0, y0, x1, y1) of a BGR image."""
+        if image.ndim != 3:
+            return None
+        x0, y0, x1, y1 = box
+        hsv = cv2.cvtColor(np.ascontiguousarray(image[y0:y1, x0:x1]), cv2.COLOR_BGR2HSV)
+        mask = cv2.inRange(hsv, (0, self.params.min_saturation, self.params.min_value),
+                           (180, 255, 255))
+        return hsv[..., 0], mask
+
+    def _hue_histogram(self, image: np.ndarray, q: np.ndarray) -> np.ndarray | None:
+        """H_0: normalised hue histogram of the window at ``q`` (None without colour)."""
+        box = _box(q, self.window, image.shape[1], image.shape[0])
+        hue = self._hue(image, box)
+        if hue is None:
+            return None
+        hist = cv2.calcHist([hue[0]], [0], hue[1], [self.params.hue_bins], [0, 180])
+        total = float(hist.sum())
+        if total < 0.05 * self.window[0] * self.window[1]:
+            return None  # a grey target: no hue to follow (CAMSHIFT then leaves particles)
+        return (hist / total).astype(np.float32)
+
+    def _camshift(self, image: np.ndarray, cloud: np.ndarray) -> np.ndarray:
+        """Each particle's colour window (size s_0, at the point + the CAMSHIFT offset) moved
+        to the mode of B_k = BackProject(H_0); a move over half a window is another blob."""
+        if self.hist is None or image.ndim != 3 or len(cloud) == 0:
+            return cloud
+        p = self.params
+        H, W = image.shape[:2]
+        ww, wh = self.window
+        windows = cloud + self._ms_offset
+        lo = np.floor(windows.min(axis=0) - np.array([ww, wh])).astype(int)
+        hi = np.ceil(windows.max(axis=0) + np.array([ww, wh])).astype(int)
+        x0, y0 = max(0, lo[0]), max(0, lo[1])
+        x1, y1 = min(W, hi[0] + 1), min(H, hi[1] + 1)
+        if x1 - x0 < ww or y1 - y0 < wh:
+            return cloud
+        hue, mask = self._hue(image, (x0, y0, x1, y1))
+        scale = self.hist * (255.0 / max(float(self.hist.max()), 1e-9))
+        back = cv2.calcBackProject([hue], [0], scale, [0, 180], 1)
+        back = cv2.bitwise_and(back, back, mask=mask)
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, p.camshift_iterations, 0.5)
+        out = cloud.copy()
+        min_mass = p.camshift_min_mass * 255.0 * ww * wh
+        limit = 0.5 * min(ww, wh)
+        for k, c in enumerate(windows):
+            bx = int(round(c[0] - x0 - ww // 2))
+            by = int(round(c[1] - y0 - wh // 2))
+            bx = min(max(bx, 0), back.shape[1] - ww)
+            by = min(max(by, 0), back.shape[0] - wh)
+            roi = back[by:by + wh, bx:bx + ww]
+            if float(roi.sum()) < min_mass:
+                continue  # no target colour under the window: the particle stays
+            _, (nx, ny, _, _) = cv2.meanShift(back, (bx, by, ww, wh), crit)
+            shift = np.array([nx - bx, ny - by], float)
+            if np.linalg.norm(shift) <= limit:
+                out[k] = cloud[k] + shift
+        return out
+
+    def _bhattacharyya(self, image: np.ndarray, q: np.ndarray) -> float:
+        if self.hist is None:
+            return 0.0
+        h = self._hue_histogram(image, q)
+        if h is None:
+            return 0.0
+        return float(np.sum(np.sqrt(np.maximum(h, 0) * np.maximum(self.hist, 0))))
+
+
+# ------------------------------------------------------------------ designated target
+
+
+@dataclass
+class TargetState:
+    """A designated target after one frame."""
+
+    status: str  # "tracking" | "lost"
+    uv: np.ndarray | None  # tracked image point (distorted pixels), None when lost
+    predicted_uv: np.ndarray | None  # its 3-D point projected with the pose (None: not in view)
+    position_ned: np.ndarray  # 3-D point (L, m)
+    covariance: np.ndarray  # (3,3) m²
+    distance_m: float  # from the camera centre to the 3-D point
+    distance_sigma_m: float
+    score: float  # template correlation (−1 when not matched)
+    views: int  # tracked views the 3-D point has used
+    reason: str = ""  # why lost / what happened
+    reacquired: bool = False  # taken back this frame from the projected 3-D point
+
+
+@dataclass
+class TargetParams:
+    window: int = 31  # template side (px)
+    reacquire_radius_px: float = 30.0  # search radius around the projected 3-D point
+    max_disagreement: int = 3  # tracked views gated by the 3-D point running: declared lost
+    # The target's landmark EKF: the tracker's pixel noise, never dropped (the tracker is
+    # declared lost instead), the click's ray prior from the structure points' spread.
+    landmark: LandmarkParams = field(default_factory=lambda: LandmarkParams(
+        pixel_sigma_px=1.5, min_views=1, max_strikes=2**31 - 1, ray_sigma_fraction=0.1))
+
+
+def nearest_surface(ranges: np.ndarray, pixel_distance: np.ndarray,
+                    surface_fraction: float = 0.15, min_support: int = 2,
+                    on_point_px: float = 1.0) -> np.ndarray:
+    """Mask of the anchors on the nearest surface: ranges grouped where consecutive sorted
+    ranges are within ``surface_fraction`` of each other; the nearest group with
+    ``min_support`` anchors, else the group of the anchor nearest the click in pixels.
+    Foreground first: around a quay edge the background shows next to it in the image, and
+    a distance too short errs on the safe side for a berthing aid. A click ON a drawn
+    structure point (within ``on_point_px``) takes that point's group."""
+    r = np.asarray(ranges, float)
+    order = np.argsort(r)
+    group = np.zeros(len(r), int)
+    g = 0
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        if r[b] - r[a] > surface_fraction * max(abs(r[a]), 1e-6):
+            g += 1
+        group[b] = g
+    sizes = np.bincount(group)
+    big = np.flatnonzero(sizes >= min(min_support, len(r)))
+    closest = int(np.argmin(pixel_distance))
+    if pixel_distance[closest] <= on_point_px or not len(big):
+        chosen = int(group[closest])
+    else:
+        chosen = int(big[0])
+    return group == chosen
+
+
+def point_on_ray(points_ned: np.ndarray, sigma_m: np.ndarray | None,
+                 camera_position_ned: np.ndarray, ray: np.ndarray, focal_px: float,
+                 pixel_distance: np.ndarray | None = None, ray_sigma_fraction: float = 0.1,
+                 lateral_sigma_px: float = 2.0, surface_fraction: float = 0.15
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The 3-D point of a clicked pixel from the port-structure points near its ray (the
+    anchors): on the ray at their range, with a covariance that is tight across the ray (the
+    click) and along it as uncertain as the anchors disagree (their range spread, their own σ
+    and ``ray_sigma_fraction`` of the range: monocular points err along their ray).
+
+    Anchors near a pixel often mix surfaces (the quay edge and the buildings behind it): with
+    ``pixel_distance`` (px from the click) only the nearest surface is kept
+    (``nearest_surface``)."""
+    c = np.asarray(camera_position_ned, float)
+    u = np.asarray(ray, float) / np.linalg.norm(ray)
+    along = (np.asarray(points_ned, float).reshape(-1, 3) - c) @ u
+    sig = None if sigma_m is None else np.asarray(sigma_m, float).reshape(-1)
+    ambiguity = 0.0
+    if pixel_distance is not None and len(along) > 1:
+        keep = nearest_surface(along, np.asarray(pixel_distance, float), surface_fraction)
+        if not keep.all():
+            # Other surfaces near the click: a weakly supported choice keeps them in reach.
+            other = along[~keep]
+            gap = float(np.min(np.abs(other - np.median(along[keep]))))
+            ambiguity = gap / (1.0 + keep.sum())
+        along = along[keep]
+        sig = None if sig is None else sig[keep]
+    r = float(np.median(along))
+    spread = 1.4826 * float(np.median(np.abs(along - r))) if len(along) > 1 else 0.0
+    s_pts = 0.0 if sig is None or len(sig) == 0 else float(np.median(sig))
+    s_ray = math.sqrt(spread**2 + s_pts**2 + (ray_sigma_fraction * r) ** 2 + ambiguity**2)
+    s_lat = max(lateral_sigma_px / focal_px * r, 0.01)
+    P = s_lat**2 * np.eye(3) + (s_ray**2 - s_lat**2) * np.outer(u, u)
+    return c + r * u, P
+
+
+def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
+                       click_uv: np.ndarray, camera_position_ned: np.ndarray, ray: np.ndarray,
+                       focal_px: float, radius_px: float = 12.0, max_radius_px: float = 24.0
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The clicked point from the port structure: the points projecting (``uv_points``, NaN
+    when not in view) within ``radius_px`` of the click — widened to ``max_radius_px`` when
+    fewer than two of them are on the nearest surface — through ``point_on_ray``. Returns
+    (point, covariance, indexes of the anchors on the chosen surface) or None."""
+    pts = np.asarray(points_ned, float).reshape(-1, 3)
+    sig = np.asarray(sigma_m, float).reshape(-1)
+    d = np.linalg.norm(np.asarray(uv_points, float).reshape(-1, 2)
+                       - np.asarray(click_uv, float).reshape(2), axis=1)
+    d = np.nan_to_num(d, nan=np.inf)
+    c = np.asarray(camera_position_ned, float)
+    u = np.asarray(ray, float) / np.linalg.norm(ray)
+    for radius in (radius_px, max_radius_px):
+        near = np.flatnonzero(d <= radius)
+        if not len(near):
+            continue
+        keep = nearest_surface((pts[near] - c) @ u, d[near])
+        if keep.sum() >= 2 or radius >= max_radius_px:
+            X, P = point_on_ray(pts[near], sig[near], c, u, focal_px, pixel_distance=d[near])
+            return X, P, near[keep]
+    return None
+
+
+class DesignatedTarget:
+    """A clicked point: its image track (``TargetTracker``) and its 3-D point, one landmark
+    EKF (``estimator.landmarks``) fed with every tracked view and the fused camera pose, so
+    the distance stays on the clicked point as the ship moves. The image track and the 3-D
+    point check each other: a track the 3-D point's χ² gate rejects ``max_disagreement``
+    times running is declared lost, and a lost track is searched for around the 3-D point's
+    projection (re-acquisition). While lost the 3-D point and its distance are still given
+    (from the views so far) with ``status`` "lost" — never a silently wrong distance.
+
+    ``position_ned``/``covariance``: the point under the click (port-structure points near it,
+    or the water plane) in the frame ``image`` with the camera pose of that frame."""
+
+    def __init__(self, camera: CameraCalibration, image: np.ndarray, uv: np.ndarray,
+                 position_ned: np.ndarray, covariance: np.ndarray | None,
+                 C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                 pose_cov: np.ndarray | None = None, params: TargetParams | None = None,
+                 method: str = "full", tracker_params: TrackerParams | None = None,
+                 seed: int | None = None, refine: bool = True) -> None:
+        self.camera = camera
+        self.refine = refine  # False: the 3-D point stays (a water-plane point: water moves)
+        self.params = params or TargetParams()
+        self._K = np.asarray(camera.K, float)
+        self._dist = np.asarray(camera.distortion, float).ravel()
+        f = 0.5 * (self._K[0, 0] + self._K[1, 1])
+        self.tracker = TargetTracker(tracker_params, method=method, seed=seed)
+        self.tracker.init(image, uv, self.params.window)
+        self.map = LandmarkMap(f, self.params.landmark)
+        X = np.asarray(position_ned, float).reshape(3)
+        P = ray_prior(X, camera_position_ned, f, self.params.landmark)[0] if covariance is None \
+            else np.asarray(covariance, float).reshape(3, 3)
+        if self.map.seed(np.array([0]), X[None], P[None]) != 1:
+            raise ValueError("the designated point or its covariance is not finite")
+        self._view(np.asarray(uv, float), C_level_to_camera, camera_position_ned, pose_cov)
+        self.map.views[:] = 0  # the click is not a tracked view
+        self.disagreements = 0
+        self.status = "tracking"
+        self.reacquisitions = 0
+
+    @property
+    def position_ned(self) -> np.ndarray:
+        return self.map.x[0].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.map.P[0] + self.map.floor[0]
+
+    def project(self, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray
+                ) -> np.ndarray | None:
+        """The 3-D point in the image (distorted pixels), None behind the camera."""
+        xc = np.asarray(C_level_to_camera, float) @ (self.map.x[0]
+                                                     - np.asarray(camera_position_ned, float))
+        if xc[2] <= 0.2:
+            return None
+        uv, _ = cv2.projectPoints(xc[None], np.zeros(3), np.zeros(3), self._K, self._dist)
+        return uv.reshape(2)
+
+    def update(self, image: np.ndarray, C_level_to_camera: np.ndarray,
+               camera_position_ned: np.ndarray, pose_cov: np.ndarray | None = None
+               ) -> TargetState:
+        """One frame and the fused camera pose at its time."""
+        p = self.params
+        pred = self.project(C_level_to_camera, camera_position_ned)
+        h, w = image.shape[:2]
+        in_view = pred is not None and -0.5 <= pred[0] <= w - 0.5 and -0.5 <= pred[1] <= h - 0.5
+        res = self.tracker.update(image)
+        reason, reacquired = res.reason, False
+        if res.status != "tracking" and in_view:
+            res = self.tracker.reacquire(image, pred, p.reacquire_radius_px)
+            reacquired = res.status == "tracking"
+            self.reacquisitions += int(reacquired)
+            reason = res.reason if not reacquired else "re-acquired at the projected 3-D point"
+        return self._state(res, reason, reacquired, pred if in_view else None,
+                           C_level_to_camera, camera_position_ned, pose_cov)
+
+    def resume(self, image: np.ndarray, C_level_to_camera: np.ndarray,
+               camera_position_ned: np.ndarray, pose_cov: np.ndarray | None = None
+               ) -> TargetState:
+        """Continue on a frame that does not follow the last one (a seek, skipped frames):
+        the image track is taken back only where the 3-D point projects (re-acquisition)."""
+        pred = self.project(C_level_to_camera, camera_position_ned)
+        h, w = image.shape[:2]
+        in_view = pred is not None and -0.5 <= pred[0] <= w - 0.5 and -0.5 <= pred[1] <= h - 0.5
+        self.tracker.status = "lost"
+        if in_view:
+            res = self.tracker.reacquire(image, pred, self.params.reacquire_radius_px)
+        else:
+            res = self.tracker.hold(image, "its 3-D point is out of the image")
+        reacquired = res.status == "tracking"
+        self.reacquisitions += int(reacquired)
+        reason = "re-acquired at the projected 3-D point" if reacquired else res.reason
+        return self._state(res, reason, reacquired, pred if in_view else None,
+                           C_level_to_camera, camera_position_ned, pose_cov)
+
+    def _state(self, res: TrackResult, reason: str, reacquired: bool,
+               pred: np.ndarray | None, C_level_to_camera: np.ndarray,
+               camera_position_ned: np.ndarray, pose_cov: np.ndarray | None) -> TargetState:
+        """Feed a tracked view to the 3-D point (χ²-checked) and form the target's state."""
+        p = self.params
+        uv = None
+        if res.status == "tracking" and res.uv is not None:
+            ok = self._view(res.uv, C_level_to_camera, camera_position_ned, pose_cov) \
+                if self.refine else True
+            self.disagreements = 0 if ok else self.disagreements + 1
+            if self.disagreements >= p.max_disagreement:
+                self.tracker.status = "lost"
+                self.disagreements = 0
+                reason = "image track disagrees with the 3-D point"
+            else:
+                uv = res.uv
+        self.status = "tracking" if uv is not None else "lost"
+        X, P = self.position_ned, self.covariance
+        c = np.asarray(camera_position_ned, float)
+        d = float(np.linalg.norm(X - c))
+        u = (X - c) / max(d, 1e-9)
+        return TargetState(status=self.status, uv=None if uv is None else np.asarray(uv).copy(),
+                           predicted_uv=pred, position_ned=X,
+                           covariance=P, distance_m=d,
+                           distance_sigma_m=float(np.sqrt(max(u @ P @ u, 0.0))),
+                           score=float(res.score), views=int(self.map.views[0]),
+                           reason=reason if uv is None or reacquired else "",
+                           reacquired=reacquired)
+
+    def _view(self, uv: np.ndarray, C: np.ndarray, c: np.ndarray, pose_cov: np.ndarray | None
+              ) -> bool:
+        """One tracked view of the 3-D point; False when its χ² gate rejects it."""
+        xy = cv2.undistortPoints(np.asarray(uv, np.float64).reshape(1, 1, 2), self._K,
+                                 self._dist).reshape(1, 2)
+        out = self.map.update(0.0, C, c, pose_cov, np.array([0]), xy)
+        return out.gated == 0
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+
+
+def _box(q: np.ndarray, window: tuple[int, int], width: int, height: int
+         ) -> tuple[int, int, int, int]:
+    x0 = int(round(q[0])) - window[0] // 2
+    y0 = int(round(q[1])) - window[1] // 2
+    x0 = min(max(x0, 0), max(width - window[0], 0))
+    y0 = min(max(y0, 0), max(height - window[1], 0))
+    return x0, y0, x0 + window[0], y0 + window[1]
+
+
+def _crop(gray: np.ndarray, q: np.ndarray, window: tuple[int, int]) -> np.ndarray:
+    """Template of size ``window`` centred (sub-pixel) at ``q``."""
+    return cv2.getRectSubPix(gray, window, (float(q[0]), float(q[1])))
+
+
+def _match(gray: np.ndarray, template: np.ndarray, centre: np.ndarray, radius: int
+           ) -> tuple[np.ndarray, float] | None:
+    """Best TM_CCOEFF_NORMED match of ``template`` whose centre is within ``radius`` of
+    ``centre``: (sub-pixel centre, score), None when the search window is off the image."""
+    th, tw = template.shape
+    H, W = gray.shape
+    cx, cy = int(round(centre[0])), int(round(centre[1]))
+    x0 = max(0, cx - radius - tw // 2)
+    y0 = max(0, cy - radius - th // 2)
+    x1 = min(W, cx + radius + tw // 2 + 1)
+    y1 = min(H, cy + radius + th // 2 + 1)
+    if x1 - x0 < tw or y1 - y0 < th:
+        return None
+    res = cv2.matchTemplate(gray[y0:y1, x0:x1], template, cv2.TM_CCOEFF_NORMED)
+    _, score, _, (mx, my) = cv2.minMaxLoc(res)
+    dx = _parabola(res, mx, my, axis=1)
+    dy = _parabola(res, mx, my, axis=0)
+    q = np.array([x0 + mx + tw // 2 + dx, y0 + my + th // 2 + dy], float)
+    return q, float(score)
+
+
+def _parabola(res: np.ndarray, x: int, y: int, axis: int) -> float:
+    """Sub-pixel offset of a peak from a parabola through it and its two neighbours."""
+    if axis == 1:
+        if x <= 0 or x >= res.shape[1] - 1:
+            return 0.0
+        a, b, c = res[y, x - 1], res[y, x], res[y, x + 1]
+    else:
+        if y <= 0 or y >= res.shape[0] - 1:
+            return 0.0
+        a, b, c = res[y - 1, x], res[y, x], res[y + 1, x]
+    den = a - 2.0 * b + c
+    if den >= 0.0:
+        return 0.0
+    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+
+
+def _score_at(gray: np.ndarray, template: np.ndarray, q: np.ndarray) -> float:
+    """Normalised correlation of the template with the window centred at ``q``."""
+    patch = _crop(gray, q, template.shape[::-1])
+    res = cv2.matchTemplate(patch, template, cv2.TM_CCOEFF_NORMED)
+    return float(res[0, 0])
+
+
+def _lk_flow(prev: np.ndarray, cur: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Flow vectors (K,2) of the points tracked forward and back consistently."""
+    lk = dict(winSize=(21, 21), maxLevel=3,
+              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03))
+    p0 = pts.reshape(-1, 1, 2).astype(np.float32)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
+    if p1 is None:
+        return np.zeros((0, 2))
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **lk)
+    fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < 1.0)
+    return (p1 - p0).reshape(-1, 2)[ok].astype(float)
+
+
+def _robust_mean(v: np.ndarray) -> np.ndarray:
+    """Mean of the vectors within 3 MADs of the median (water, other boats move)."""
+    med = np.median(v, axis=0)
+    r = np.linalg.norm(v - med, axis=1)
+    mad = max(float(np.median(r)), 0.3)
+    keep = r <= 3.0 * mad
+    return v[keep].mean(axis=0) if keep.any() else med
+
+
+def resample_indexes(weights: np.ndarray) -> np.ndarray:
+    """Systematic resampling (seed 002 eq. 20) of normalised weights → particle indexes."""
+    w = np.asarray(weights, float)
+    w = w / w.sum()
+    try:
+        return np.asarray(systematic_resample(w), int)
+    except IndexError:  # cumulative sum a hair below 1 and the last position above it
+        c = np.cumsum(w)
+        c[-1] = 1.0
+        pos = (np.random.random() + np.arange(len(w))) / len(w)
+        return np.searchsorted(c, pos).astype(int)

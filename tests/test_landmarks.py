@@ -1,0 +1,201 @@
+"""Port-structure refinement (estimator/landmarks.py): landmark EKFs fed with views.
+
+Constructed cases in the spirit of seed 000's simulation (fig. 9–10): points seen from a
+moving camera with noisy pixels, initialised far off along their viewing ray (the monocular
+error); error against the number of views, covariance consistency over Monte Carlo runs
+(the runs are many landmarks of one map: the update is vectorised over them), outlier gating,
+the pose uncertainty, and the fusion's use of it (``Fusion.structure``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.frames import camera_to_body, euler_to_dcm, skew
+from estimator.landmarks import (
+    LandmarkMap,
+    LandmarkParams,
+    camera_pose_covariance,
+    ray_prior,
+    triangulate_rays,
+)
+
+FOCAL = 680.0
+C_CB = camera_to_body(0.0, np.radians(3.0))  # camera looking forward, 3° down
+
+
+def camera_path(n: int, speed: float = 1.0, yaw_rate_deg: float = 3.0, dt: float = 0.1
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(C_level_to_camera, camera centre) of a boat going north-east while turning."""
+    out = []
+    for k in range(n):
+        t = k * dt
+        yaw = np.radians(20.0 + yaw_rate_deg * t)
+        C_bl = euler_to_dcm(np.radians(1.5) * np.sin(1.7 * t), np.radians(0.8) * np.sin(1.1 * t),
+                            yaw)
+        p = np.array([speed * t * np.cos(0.35), speed * t * np.sin(0.35), -1.0])
+        out.append(((C_bl @ C_CB).T, p))
+    return out
+
+
+def observe(X: np.ndarray, C: np.ndarray, p: np.ndarray, sigma_px: float,
+            rng: np.random.Generator) -> np.ndarray:
+    xc = (X - p) @ C.T
+    return xc[:, :2] / xc[:, 2:] + rng.normal(0.0, sigma_px / FOCAL, (len(X), 2))
+
+
+@pytest.fixture(scope="module")
+def scene() -> np.ndarray:
+    """One quay point 20 m ahead of the start, a little to starboard."""
+    return np.array([18.0, 9.0, -2.0])
+
+
+def monte_carlo(point: np.ndarray, runs: int, views: int, sigma_px: float = 1.0,
+                depth_error: float = 0.3, seed: int = 0, checkpoints=(1, 5, 20, 80)):
+    """``runs`` landmarks at the same true point, each started ``depth_error`` off along its
+    first ray (sign random) with the ray prior, then fed ``views`` noisy views."""
+    rng = np.random.default_rng(seed)
+    path = camera_path(views + 1)
+    params = LandmarkParams(pixel_sigma_px=sigma_px, ray_sigma_fraction=depth_error)
+    lm = LandmarkMap(FOCAL, params)
+    C0, p0 = path[0]
+    ids = np.arange(runs)
+    sign = rng.choice([-1.0, 1.0], runs)
+    u = (point - p0) / np.linalg.norm(point - p0)
+    r = np.linalg.norm(point - p0)
+    start = point + (sign * rng.uniform(0.5, 1.0, runs) * depth_error * r)[:, None] * u
+    lm.seed_from_view(ids, start, p0)
+    X = np.repeat(point[None], runs, axis=0)
+    history = {0: (lm.x.copy(), lm.P.copy())}
+    for k in range(1, views + 1):
+        C, p = path[k]
+        out = lm.update(0.1 * k, C, p, None, ids, observe(X, C, p, sigma_px, rng))
+        assert out.updated + out.gated == runs
+        if k in checkpoints:
+            history[k] = (lm.x.copy(), lm.P.copy())
+    return lm, history
+
+
+def test_error_falls_as_views_accumulate(scene):
+    """Seed 000 fig. 10: the landmark error decreases with the number of views."""
+    _lm, hist = monte_carlo(scene, runs=200, views=80)
+    med = {k: float(np.median(np.linalg.norm(x - scene, axis=1))) for k, (x, _P) in hist.items()}
+    assert med[0] > 2.0  # started metres off along the ray
+    assert med[0] > med[1] > med[5] > med[20] > med[80]
+    assert med[80] < 0.05 * med[0] and med[80] < 0.25
+    # the error was along the ray: the first view already pins the point across it
+    x1 = hist[1][0]
+    p0 = camera_path(1)[0][1]
+    u = (scene - p0) / np.linalg.norm(scene - p0)
+    lateral = (x1 - scene) - np.outer((x1 - scene) @ u, u)
+    assert np.median(np.linalg.norm(lateral, axis=1)) < 0.05
+
+
+def test_covariance_is_consistent(scene):
+    """NEES over the Monte Carlo runs ≈ 3 (the dimension) once the views have pinned the
+    point down; the covariance shrinks along the ray as the parallax grows."""
+    _lm, hist = monte_carlo(scene, runs=400, views=80, seed=4)
+    for k in (20, 80):
+        x, P = hist[k]
+        e = x - scene
+        nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(P), e)
+        assert 2.4 < nees.mean() < 3.8, (k, nees.mean())
+    s0 = np.sqrt(np.linalg.eigvalsh(hist[0][1][0])[-1])
+    s80 = np.sqrt(np.linalg.eigvalsh(hist[80][1][0])[-1])
+    assert s80 < 0.1 * s0
+
+
+def test_outliers_are_gated_and_a_persistent_one_dropped(scene):
+    lm, _ = monte_carlo(scene, runs=3, views=40)
+    C, p = camera_path(41)[40]
+    ids = np.array([0, 1, 2])
+    z = observe(np.repeat(scene[None], 3, axis=0), C, p, 0.0, np.random.default_rng(0))
+    before = lm.x.copy()
+    views = lm.views.copy()
+    bad = z.copy()
+    bad[0] += 25.0 / FOCAL  # 25 px off
+    out = lm.update(4.1, C, p, None, ids, bad)
+    assert out.gated == 1 and out.updated == 2
+    np.testing.assert_array_equal(lm.x[0], before[0])  # the gated view changed nothing
+    assert lm.views[0] == views[0] and lm.views[1] == views[1] + 1
+    for _ in range(LandmarkParams().max_strikes - 1):
+        lm.update(4.1, C, p, None, ids, bad)
+    assert not lm.known([0])[0] and lm.known([1, 2]).all()
+    assert lm.stats["dropped"] == 1
+    assert 0 not in lm.points(min_views=0)[0]
+    # the VO's point re-seeds it (a fresh start)
+    assert lm.seed_from_view([0], [scene + 1.0], p) == 1
+    assert lm.known([0])[0] and lm.view_counts([0])[0] == 0
+    # unknown ids are ignored, a duplicated id counts once
+    out = lm.update(4.2, C, p, None, np.array([7, 1, 1]), np.vstack([z[:1], z[1:2], z[1:2]]))
+    assert out.unknown == 1 and out.updated == 1
+
+
+def test_pose_uncertainty_weights_views_down(scene):
+    """The fused pose covariance enters each view's noise: with a poorly known attitude the
+    same views pin the point down less (larger covariance) — and not beyond what the
+    camera positions are known to (the floor of ``points``)."""
+    path = camera_path(31)
+    C0, p0 = path[0]
+    runs = {}
+    for name, att_deg in (("exact", None), ("0.3 deg", 0.3)):
+        lm = LandmarkMap(FOCAL)
+        lm.seed_from_view([5], [scene + 3.0 * (scene - p0) / np.linalg.norm(scene - p0)], p0)
+        rng = np.random.default_rng(1)
+        for k in range(1, 31):
+            C, p = path[k]
+            cov = None if att_deg is None else np.diag([0.05**2] * 3 + [np.radians(att_deg)**2]
+                                                       * 3)
+            lm.update(0.1 * k, C, p, cov, [5], observe(scene[None], C, p, 1.0, rng))
+        runs[name] = lm.points(min_views=1)
+    assert np.trace(runs["0.3 deg"][2][0]) > 4 * np.trace(runs["exact"][2][0])
+    assert np.linalg.eigvalsh(runs["0.3 deg"][2][0]).min() >= 0.05**2 * 0.99  # position floor
+    assert np.linalg.norm(runs["0.3 deg"][1][0] - scene) < 1.5
+
+
+def test_camera_pose_covariance_and_priors():
+    Pr = np.diag([0.01, 0.02, 0.03]) ** 2
+    Pe = np.diag([0.001, 0.002, 0.003]) ** 2
+    c = np.array([3.0, 0.0, -0.4])
+    cov = camera_pose_covariance(Pr, Pe, c)
+    A = -skew(c)
+    np.testing.assert_allclose(cov[:3, :3], Pr + A @ Pe @ A.T)
+    np.testing.assert_allclose(cov[3:, 3:], Pe)
+    np.testing.assert_allclose(cov[:3, 3:], A @ Pe)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    # the ray prior: σ along the ray = fraction × range, across = pixels at the range
+    params = LandmarkParams(ray_sigma_fraction=0.2, lateral_sigma_px=2.0)
+    P = ray_prior(np.array([[0.0, 0.0, 30.0]]), np.zeros(3), FOCAL, params)[0]
+    np.testing.assert_allclose(np.sqrt(np.diag(P)), [2.0 / FOCAL * 30, 2.0 / FOCAL * 30, 6.0])
+    X, angle = triangulate_rays(np.array([[0.0, 0, 0], [1.0, 0, 0]]),
+                                np.array([[0.0, 0, 1], [-1.0, 0, 10]]))
+    np.testing.assert_allclose(X, [0.0, 0.0, 10.0], atol=1e-9)
+    assert angle == pytest.approx(np.arctan(0.1))
+
+
+def test_fusion_structure_uses_refined_landmarks():
+    """``Fusion.structure()`` swaps in the refined point of every landmark with enough views
+    (the raw VO points with ``refined=False``); without refinement both are the raw ones."""
+    from estimator.pipeline import Fusion, FusionOptions
+    from estimator.records import Calibration, ImuCalibration, NavigationData
+    from recordings.sim.scenarios import SMALL_BOAT
+    from recordings.sim.scene import camera_calibration
+
+    cal = Calibration(camera=camera_calibration(SMALL_BOAT),
+                      antennas_body=SMALL_BOAT.antennas_body(), imu=ImuCalibration())
+    f = Fusion(cal, NavigationData(), FusionOptions())
+    assert f.landmarks is not None and len(f.landmarks) == 0
+    f._frozen = {1: np.array([10.0, 0.0, -1.0]), 2: np.array([12.0, 1.0, -1.0])}
+    f._frozen_sigma = {1: 0.5, 2: 0.5}
+    f.landmarks.seed(np.array([2]), np.array([[12.5, 1.0, -1.0]]), np.eye(3)[None] * 0.01)
+    f.landmarks.views[:] = 10
+    pts, sig, ids = f.structure()
+    raw, _sig, raw_ids = f.structure(refined=False)
+    np.testing.assert_array_equal(ids, raw_ids)
+    row = int(np.flatnonzero(ids == 2)[0])
+    np.testing.assert_allclose(pts[row], [12.5, 1.0, -1.0])
+    np.testing.assert_allclose(raw[row], [12.0, 1.0, -1.0])
+    assert sig[row] == pytest.approx(0.1)
+    off = Fusion(cal, NavigationData(), FusionOptions(landmarks=None))
+    assert off.landmarks is None

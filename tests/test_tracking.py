@@ -1,0 +1,300 @@
+"""Designated-target tracking (estimator/tracking.py) and its evaluation (backend/reports/
+tracking.py).
+
+The tracker runs on short sequences rendered by the simulator (recordings.sim.scene) from the
+small-boat scenario's true motion, where the true target path is the projection of a true
+scene point; plus the particle-filter pieces, loss detection and re-acquisition, and a smoke
+run of the evaluation on the simulated test recording.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.frames import rot_z
+from estimator.records import CameraCalibration
+from estimator.tracking import (
+    DesignatedTarget,
+    TargetParams,
+    TargetTracker,
+    nearest_surface,
+    resample_indexes,
+    structure_point_at,
+)
+from recordings.sim.motion import ShipMotion
+from recordings.sim.scenarios import SMALL_BOAT
+from recordings.sim.scene import PortScene, camera_calibration, project_points
+
+SEED = 1
+T0 = 62.0  # s: the boat is 15–25 m from the quay wall
+N_FRAMES = 30
+WALL_KINDS = ("quay", "fender", "ladder")
+
+
+class Sequence:
+    """Rendered frames with the true camera poses and a quay-wall point to track."""
+
+    def __init__(self, scene: PortScene, cam: CameraCalibration,
+                 poses: list[tuple[np.ndarray, np.ndarray]], times: list[float]) -> None:
+        rng = np.random.default_rng(5)
+        self.cam = cam
+        self.poses = poses
+        self.images = [scene.render(C, p, t, cam, rng) for (C, p), t in zip(poses, times,
+                                                                             strict=True)]
+
+    def truth(self, point: np.ndarray) -> np.ndarray:
+        """(N,2) true pixel path of a NED point (NaN behind the camera)."""
+        return np.array([project_points(point[None], C, p, self.cam)[0][0]
+                         for C, p in self.poses])
+
+
+@pytest.fixture(scope="module")
+def world() -> tuple[PortScene, CameraCalibration, ShipMotion]:
+    return PortScene.build(SMALL_BOAT, SEED), camera_calibration(SMALL_BOAT), \
+        ShipMotion(SMALL_BOAT, SEED)
+
+
+def true_pose(motion: ShipMotion, cam: CameraCalibration, t: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+    st = motion.state(t)
+    C_l_c = (st.C_body_to_level[0] @ cam.C_camera_to_body).T
+    return C_l_c, motion.point_position_ned(t, cam.lever_arm_body).reshape(3)
+
+
+def wall_point(scene: PortScene, cam: CameraCalibration, C: np.ndarray, p: np.ndarray,
+               margin: float = 150.0) -> np.ndarray:
+    """A quay-wall scene point well inside the image, nearest the image centre."""
+    pts, kinds = scene.scene_points()
+    sel = np.isin(kinds, WALL_KINDS)
+    uv, depth = project_points(pts[sel], C, p, cam)
+    ok = (depth > 5.0) & (depth < 30.0) & (uv[:, 0] > margin) & \
+        (uv[:, 0] < cam.width - margin) & (uv[:, 1] > 60) & (uv[:, 1] < cam.height - 60)
+    assert ok.any(), "no quay-wall point in view"
+    centre = np.array([cam.width / 2, cam.height / 2])
+    k = np.flatnonzero(ok)[np.argmin(np.linalg.norm(uv[ok] - centre, axis=1))]
+    return pts[sel][k]
+
+
+@pytest.fixture(scope="module")
+def along_path(world) -> tuple[Sequence, np.ndarray]:
+    """~3 s of the true berthing motion (wave roll/pitch, forward speed, turning)."""
+    scene, cam, motion = world
+    times = [T0 + 0.1 * k for k in range(N_FRAMES)]
+    poses = [true_pose(motion, cam, t) for t in times]
+    seq = Sequence(scene, cam, poses, times)
+    return seq, wall_point(scene, cam, *poses[0])
+
+
+@pytest.fixture(scope="module")
+def panning(world) -> tuple[Sequence, np.ndarray]:
+    """A camera panning to starboard 2.5°/frame from a fixed point: the target crosses the
+    image and leaves it on the left."""
+    scene, cam, motion = world
+    C0, p0 = true_pose(motion, cam, T0)
+    poses = [(C0 @ rot_z(-np.radians(2.5 * k)).T, p0) for k in range(N_FRAMES)]
+    seq = Sequence(scene, cam, poses, [T0] * N_FRAMES)
+    pts, kinds = scene.scene_points()
+    sel = np.isin(kinds, WALL_KINDS)
+    uv, depth = project_points(pts[sel], C0, p0, cam)
+    # the wall point right of the centre, so that it leaves the image after ~20 frames
+    ok = (depth > 5) & (depth < 30) & (uv[:, 0] > 480) & (uv[:, 0] < 650) & (uv[:, 1] > 60)
+    assert ok.any()
+    return seq, pts[sel][np.flatnonzero(ok)[0]]
+
+
+# ------------------------------------------------------------------------ the tracker
+
+
+def run(seq: Sequence, tracker: TargetTracker, start_uv: np.ndarray, images=None):
+    images = seq.images if images is None else images
+    tracker.init(images[0], start_uv)
+    return [tracker.update(img) for img in images[1:]]
+
+
+def test_tracks_a_quay_point_along_the_berthing_path(along_path):
+    seq, point = along_path
+    truth = seq.truth(point)
+    assert np.linalg.norm(truth[-1] - truth[0]) > 10.0  # the point does move in the image
+    results = run(seq, TargetTracker(seed=0), truth[0])
+    assert all(r.status == "tracking" for r in results)
+    err = np.array([np.linalg.norm(r.uv - t) for r, t in zip(results, truth[1:], strict=True)])
+    assert np.median(err) < 1.0 and err.max() < 3.0, err
+    assert all(r.score > 0.8 for r in results)
+    # the particle cloud stays on the target (resampled, moved with the flow and the snap)
+    assert all(np.linalg.norm(r.particles.mean(axis=0) - r.uv) < 15.0 for r in results)
+    # the ablations of seed 002 fig. 7 run on the same frames
+    tmpl = run(seq, TargetTracker(method="template", seed=0), truth[0])
+    assert np.median([np.linalg.norm(r.uv - t) for r, t in zip(tmpl, truth[1:], strict=True)
+                      if r.uv is not None]) < 3.0
+    camshift = run(seq, TargetTracker(method="camshift_pf", seed=0), truth[0])
+    assert len(camshift) == N_FRAMES - 1 and all(len(r.particles) == 20 for r in camshift)
+
+
+def test_target_leaving_the_image_is_declared_lost_never_misplaced(panning):
+    seq, point = panning
+    truth = seq.truth(point)
+    half = 31 / 2
+    inside = (truth[:, 0] > half + 2) & (truth[:, 0] < seq.cam.width - half - 3)
+    assert inside[0] and not inside[-1]  # it does leave
+    results = run(seq, TargetTracker(seed=0), truth[0])
+    for r, t, ok in zip(results, truth[1:], inside[1:], strict=True):
+        if r.status == "tracking":
+            assert ok and np.linalg.norm(r.uv - t) < 3.0, (r.uv, t)
+        else:
+            assert r.uv is None and r.reason
+    first_out = int(np.argmin(inside))
+    assert all(r.status == "tracking" for r in results[:first_out - 2])
+    assert all(r.status == "lost" for r in results[first_out:])
+
+
+def test_loss_on_a_blank_or_occluded_frame_and_reacquisition(along_path):
+    seq, point = along_path
+    truth = seq.truth(point)
+    tr = TargetTracker(seed=0)
+    tr.init(seq.images[0], truth[0])
+    for img in seq.images[1:5]:
+        assert tr.update(img).status == "tracking"
+    blank = np.full_like(seq.images[5], 128)
+    lost = tr.update(blank)
+    assert lost.status == "lost" and lost.uv is None and lost.score < 0.55
+    back = tr.update(seq.images[6])  # the target is visible again near where it was
+    assert back.status == "tracking" and np.linalg.norm(back.uv - truth[6]) < 2.0
+    # an occluder pasted over the target
+    occluded = seq.images[7].copy()
+    u, v = np.round(truth[7]).astype(int)
+    occluded[v - 25:v + 26, u - 25:u + 26] = (40, 60, 70)
+    assert tr.update(occluded).status == "lost"
+    # re-acquisition from a predicted position (its 3-D point projected with the pose)
+    found = tr.reacquire(seq.images[9], truth[9] + np.array([6.0, -4.0]))
+    assert found.status == "tracking" and np.linalg.norm(found.uv - truth[9]) < 2.0
+    far = TargetTracker(seed=0)
+    far.init(seq.images[0], truth[0])
+    assert far.reacquire(seq.images[9], truth[9] + np.array([200.0, 0.0])).status == "lost"
+
+
+def test_systematic_resampling_counts():
+    w = np.array([0.5, 0.25, 0.25, 0.0])
+    idx = resample_indexes(w)
+    np.testing.assert_array_equal(np.bincount(idx, minlength=4), [2, 1, 1, 0])
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        w = rng.random(20) ** 3
+        counts = np.bincount(resample_indexes(w), minlength=20)
+        expected = 20 * w / w.sum()
+        # systematic resampling: every count is the floor or the ceiling of N w
+        assert counts.sum() == 20 and np.all(np.abs(counts - expected) < 1.0 + 1e-9)
+    # unnormalised weights are normalised; a weight of zero is never drawn
+    idx = resample_indexes(np.array([0.0, 3.0, 1.0]))
+    assert 0 not in idx and np.bincount(idx, minlength=3)[1] >= 2
+
+
+def test_init_outside_the_image_is_refused(along_path):
+    seq, _ = along_path
+    with pytest.raises(ValueError, match="not inside"):
+        TargetTracker().init(seq.images[0], (-5.0, 10.0))
+    with pytest.raises(ValueError, match="unknown tracking method"):
+        TargetTracker(method="kalman")
+
+
+# ---------------------------------------------------------------- the designated target
+
+
+def test_designated_target_locks_its_distance_and_reacquires(along_path):
+    """The clicked point from a structure point 15 % too far along its ray: the tracked views
+    (true poses) bring the distance to the truth; a blank frame makes it lost and it is found
+    again in the next frame; after a jump (a seek) it is re-acquired where its 3-D point
+    projects."""
+    seq, point = along_path
+    truth = seq.truth(point)
+    C0, p0 = seq.poses[0]
+    ray = point - p0
+    start = p0 + 1.15 * ray
+    pose_cov = np.diag([1e-4] * 3 + [np.radians(0.02) ** 2] * 3)
+    tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None, C0, p0, pose_cov,
+                           params=TargetParams(), seed=0)
+    d0 = abs(np.linalg.norm(start - p0) - np.linalg.norm(point - p0))
+    states = []
+    for k in range(1, N_FRAMES):
+        img = seq.images[k] if k != 12 else np.zeros_like(seq.images[k])
+        states.append(tgt.update(img, *seq.poses[k], pose_cov))
+    assert states[11].status == "lost" and states[11].uv is None  # the blank frame
+    assert states[12].status == "tracking"
+    tracked = [s for s in states if s.status == "tracking"]
+    assert len(tracked) == N_FRAMES - 2
+    C, p = seq.poses[-1]
+    err_end = abs(states[-1].distance_m - np.linalg.norm(point - p))
+    assert err_end < 0.5 * d0, (err_end, d0)
+    assert states[-1].distance_sigma_m < 0.5 * np.linalg.norm(point - p)
+    assert states[-1].views == len(tracked)
+    # a seek back to frame 5: resumed from the projection of the 3-D point
+    back = tgt.resume(seq.images[5], *seq.poses[5], pose_cov)
+    assert back.status == "tracking" and back.reacquired
+    assert np.linalg.norm(back.uv - truth[5]) < 2.0
+
+
+def test_nearest_surface_prefers_the_foreground_unless_a_point_is_clicked():
+    ranges = np.array([61.0, 20.5, 63.0, 21.0, 45.0])
+    pixels = np.array([2.5, 9.0, 6.0, 11.0, 7.0])
+    np.testing.assert_array_equal(nearest_surface(ranges, pixels),
+                                  [False, True, False, True, False])
+    # clicked on the drawn point (2.5 px away at most): its surface
+    np.testing.assert_array_equal(nearest_surface(ranges, pixels, on_point_px=3.0),
+                                  [True, False, True, False, False])
+    cam = camera_calibration(SMALL_BOAT)
+    C = np.eye(3)
+    pts = np.array([[0.0, 0.0, 20.0], [0.2, 0.0, 20.5], [0.1, 0.1, 60.0], [0.0, 0.2, 61.0]])
+    uv = project_points(pts, C, np.zeros(3), cam)[0]
+    click = uv[0] + np.array([4.0, 4.0])
+    X, P, idx = structure_point_at(pts, np.full(4, 0.2), uv, click, np.zeros(3),
+                                   np.array([0.0, 0.0, 1.0]), cam.K[0, 0])
+    assert set(idx) == {0, 1} and X[2] == pytest.approx(20.25, abs=0.3)
+    s_ray, s_lat = np.sqrt(P[2, 2]), np.sqrt(P[0, 0])
+    assert s_ray > 10 * s_lat  # uncertain along the ray, not across
+    assert structure_point_at(pts, np.full(4, 0.2), uv, uv[0] + 100.0, np.zeros(3),
+                              np.array([0.0, 0.0, 1.0]), cam.K[0, 0]) is None
+
+
+# -------------------------------------------------------------------------- evaluation
+
+
+def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
+    """The report functions end to end on the 12 s test recording (quay far away: a click
+    on a building corner); figures are checked for shape and sanity only."""
+    from backend.reports.tracking import (
+        Click,
+        evaluate_landmarks,
+        evaluate_tracking,
+        format_tracking_report,
+        run_fusion,
+    )
+    from recordings.format import load
+
+    rec = load(sim_recording)
+    k = 80
+    pos, _v, e = rec.reference.interpolate(rec.frame_times[k])
+    from estimator.frames import euler_to_dcm
+
+    C_bl = euler_to_dcm(*e)
+    cam = rec.calibration.camera
+    C = (C_bl @ cam.C_camera_to_body).T
+    c = pos + C_bl @ cam.lever_arm_body
+    uv, depth = project_points(rec.scene_points, C, c, cam)
+    ok = np.flatnonzero((depth > 0) & (uv[:, 0] > 200) & (uv[:, 0] < 760) & (uv[:, 1] > 100)
+                        & (uv[:, 1] < 500))
+    j = int(ok[np.argmin(depth[ok])])
+    clicks = [Click(frame=k, uv=(float(uv[j, 0]), float(uv[j, 1])), point=j, label="near")]
+    run_ = run_fusion(rec, snapshot_frames=[k])
+    assert run_.origin_time is not None and k in run_.structure_at
+    tr = evaluate_tracking(rec, run_, clicks, methods=("designated", "template"))
+    assert set(tr["methods"]) == {"designated", "template"}
+    d = tr["methods"]["designated"]
+    assert d["frames"] == len(rec.frame_times) - k - 1
+    assert d["pixel_error"]["n"] > 0 and d["pixel_error"]["median"] < 3.0
+    assert d["undetected_loss_frames"] == 0
+    lm = evaluate_landmarks(rec, run_)
+    assert lm["points"] > 0 and lm["scene_point_match"]["raw"]["points"] > 0
+    assert lm["depth_truth"] is not None and lm["error_vs_views"]
+    views = [row["views"] for row in lm["error_vs_views"]]
+    assert views == sorted(views)
+    assert "Designated-target tracking" in format_tracking_report(tr, lm)
