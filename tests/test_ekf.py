@@ -20,15 +20,11 @@ from estimator.ekf import ErrorStateEkf
 from estimator.frames import dcm_to_rotvec, euler_to_dcm, rotvec_to_dcm
 from estimator.ins import Ins, InsState
 from estimator.pipeline import Fusion, FusionOptions
-from estimator.records import Calibration, ImuCalibration
+from estimator.records import ImuCalibration
 from estimator.vo import VoOutput, umeyama_alignment
-from recordings.rinex import read_nav
-from recordings.sim.gnss import simulate_gnss
-from recordings.sim.imu import simulate_imu
-from recordings.sim.motion import ShipMotion
 from recordings.sim.scenarios import SMALL_BOAT
 from recordings.sim.scene import camera_calibration
-from recordings.sim.simulate import NAV_FILE
+from recordings.sim.simulate import SensorRun, simulate_sensors
 
 DURATION_S = 65.0
 BLOCK_AFTER_S = 30.0  # thesis: 30 s with every satellite, then the blocking scenario
@@ -38,31 +34,15 @@ TABLE21 = {0: ["G05"], 1: ["G18"], 2: ["G24"], 3: ["G20"]}  # one satellite per 
 THREE_SATS = ["G05", "G18", "G24"]  # spread in azimuth (62°, 313°, 197°)
 
 
-@dataclass
-class Sim:
-    motion: ShipMotion
-    calibration: Calibration
-    nav: object
-    imu: object
-    epochs: list
-    imu_truth: dict
-
+class Sim(SensorRun):
     def truth(self, t_gpst: float):
         return self.motion.state(t_gpst - SCENARIO.start_gpst)
 
 
 @pytest.fixture(scope="module")
 def sim() -> Sim:
-    nav = read_nav(NAV_FILE)
-    motion = ShipMotion(SCENARIO, SEED)
-    imu, imu_cal, imu_truth = simulate_imu(motion, SCENARIO, SEED, SCENARIO.start_gpst)
-    keep = imu.time <= SCENARIO.start_gpst + DURATION_S + 1e-9
-    imu.time, imu.gyro, imu.accel = imu.time[keep], imu.gyro[keep], imu.accel[keep]
-    antennas = SCENARIO.antennas_body()
-    epochs, _ = simulate_gnss(SCENARIO, lambda t, i: motion.point_position_ned(t, antennas[i]),
-                              nav, SCENARIO.start_gpst, DURATION_S, SEED)
-    cal = Calibration(camera=camera_calibration(SCENARIO), antennas_body=antennas, imu=imu_cal)
-    return Sim(motion, cal, nav, imu, epochs, imu_truth)
+    run = simulate_sensors(SCENARIO, SEED, DURATION_S)
+    return Sim(**vars(run))
 
 
 @dataclass

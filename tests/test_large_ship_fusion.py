@@ -15,15 +15,9 @@ import pytest
 
 from estimator.frames import rotvec_to_dcm
 from estimator.pipeline import Fusion, FusionOptions
-from estimator.records import Calibration
 from estimator.vo import VoOutput
-from recordings.rinex import read_nav
-from recordings.sim.gnss import simulate_gnss
-from recordings.sim.imu import simulate_imu
-from recordings.sim.motion import ShipMotion
 from recordings.sim.scenarios import LARGE_SHIP
-from recordings.sim.scene import camera_calibration
-from recordings.sim.simulate import NAV_FILE
+from recordings.sim.simulate import simulate_sensors
 
 SC = LARGE_SHIP
 SEED = 5
@@ -35,16 +29,9 @@ SCORE_FROM_S = 20.0
 
 @pytest.fixture(scope="module")
 def large_run():
-    nav = read_nav(NAV_FILE)
-    motion = ShipMotion(SC, SEED)
-    imu, imu_cal, _ = simulate_imu(motion, SC, SEED, SC.start_gpst)
-    keep = imu.time <= SC.start_gpst + DURATION_S + 1e-9
-    imu.time, imu.gyro, imu.accel = imu.time[keep], imu.gyro[keep], imu.accel[keep]
-    antennas = SC.antennas_body()
-    epochs, _ = simulate_gnss(SC, lambda t, i: motion.point_position_ned(t, antennas[i]),
-                              nav, SC.start_gpst, DURATION_S, SEED)
-    cam = camera_calibration(SC)
-    cal = Calibration(camera=cam, antennas_body=antennas, imu=imu_cal)
+    run = simulate_sensors(SC, SEED, DURATION_S)
+    nav, motion, imu, epochs, cal = run.nav, run.motion, run.imu, run.epochs, run.calibration
+    cam = cal.camera
     f = Fusion(cal, nav, FusionOptions(use_vo=True, landmarks=None))
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-5, 5, 80), rng.uniform(-150, 50, 80),

@@ -5,16 +5,17 @@ from __future__ import annotations
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from estimator.frames import ned_to_ecef
-from estimator.records import Calibration, Hull
+from estimator.records import Calibration, GnssEpoch, Hull, ImuData, NavigationData
 
 from .. import format as fmt
 from ..rinex import read_nav, write_obs
-from .gnss import GnssErrorModel, simulate_gnss
+from .gnss import GnssErrorModel, GnssTruth, simulate_gnss
 from .imu import simulate_imu
 from .motion import ShipMotion
 from .scenarios import SCENARIOS, Scenario
@@ -44,6 +45,46 @@ class Progress:
         sys.stderr.flush()
 
 
+@dataclass
+class SensorRun:
+    """The non-visual sensors of a simulated berthing, in memory (simulate() writes them; tests
+    of the fusion use them directly)."""
+
+    motion: ShipMotion
+    calibration: Calibration
+    nav: NavigationData
+    imu: ImuData
+    epochs: list[list[GnssEpoch]]
+    imu_truth: dict
+    gnss_truth: GnssTruth
+
+
+def simulate_sensors(
+    scenario: Scenario,
+    seed: int,
+    duration_s: float,
+    gnss_errors: GnssErrorModel | None = None,
+    progress: Progress | None = None,
+) -> SensorRun:
+    """Motion, IMU (100 Hz) and the four receivers' GNSS (1 Hz) over ``duration_s``."""
+    start = scenario.start_gpst
+    motion = ShipMotion(scenario, seed)
+    antennas = scenario.antennas_body()
+    imu, imu_cal, imu_truth = simulate_imu(motion, scenario, seed, start, rate_hz=IMU_RATE_HZ)
+    keep = imu.time <= start + duration_s + 1e-9
+    imu.time, imu.gyro, imu.accel = imu.time[keep], imu.gyro[keep], imu.accel[keep]
+    if progress:
+        progress("imu", 1, 1)
+    nav = read_nav(NAV_FILE)
+    epochs, gnss_truth = simulate_gnss(
+        scenario, lambda t, i: motion.point_position_ned(t, antennas[i]), nav, start,
+        duration_s, seed, errors=gnss_errors,
+        progress=(lambda d, n: progress("gnss", d, n)) if progress else None)
+    calibration = Calibration(camera=camera_calibration(scenario), antennas_body=antennas,
+                              imu=imu_cal)
+    return SensorRun(motion, calibration, nav, imu, epochs, imu_truth, gnss_truth)
+
+
 def simulate(
     scenario_name: str,
     seed: int,
@@ -70,23 +111,10 @@ def simulate(
     lat, lon, h = scenario.origin_llh_deg
     origin = np.array([np.radians(lat), np.radians(lon), h])
 
-    motion = ShipMotion(scenario, seed)
-    camera = camera_calibration(scenario)
-    antennas = scenario.antennas_body()
-
-    imu, imu_cal, _imu_truth = simulate_imu(motion, scenario, seed, start, rate_hz=IMU_RATE_HZ)
-    keep = imu.time <= start + duration + 1e-9
-    imu.time, imu.gyro, imu.accel = imu.time[keep], imu.gyro[keep], imu.accel[keep]
-    show("imu", 1, 1)
-
-    nav = read_nav(NAV_FILE)
+    run = simulate_sensors(scenario, seed, duration, gnss_errors, show)
+    motion, imu, epochs = run.motion, run.imu, run.epochs
+    camera, antennas = run.calibration.camera, run.calibration.antennas_body
     shutil.copyfile(NAV_FILE, out / "gnss" / "nav.rnx")
-    epochs, _gnss_truth = simulate_gnss(
-        scenario,
-        lambda t, i: motion.point_position_ned(t, antennas[i]),
-        nav, start, duration, seed, errors=gnss_errors,
-        progress=lambda d, n: show("gnss", d, n),
-    )
     centre = ned_to_ecef(motion.point_position_ned(0.0, antennas.mean(axis=0)), origin)
     obs_files = []
     for i, rx_epochs in enumerate(epochs):
@@ -111,7 +139,7 @@ def simulate(
             show("video", k + 1, n_frames)
     fmt.write_frame_times(out, frame_times)
     fmt.write_imu(out, imu)
-    fmt.write_calibration(out, Calibration(camera=camera, antennas_body=antennas, imu=imu_cal))
+    fmt.write_calibration(out, run.calibration)
     berth = np.array([[0.0, scenario.quay_east_range[0]], [0.0, scenario.quay_east_range[1]]])
     fmt.write_hull(out, Hull(scenario.hull_outline(), scenario.hull_length_m, scenario.hull_beam_m,
                              berth, body_origin_height_m=-scenario.reference_point_down_m))
