@@ -26,6 +26,14 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return rep
 
 
+def test_tracking_and_landmark_evaluations_are_part_of_the_report(report: dict) -> None:
+    # Early in the berthing no quay point is 12-28 m away: the section says so, not a figure.
+    assert isinstance(report["tracking"]["methods"], dict)
+    assert report["tracking"]["methods"] or report["tracking"]["reason"]
+    assert "error_vs_views" in report["landmarks"]
+    assert "Designated-target tracking" in format_replay_report(report)
+
+
 def test_json_shape_is_stable_and_strict(report: dict) -> None:
     doc = _json_safe({k: v for k, v in report.items() if k != "_plots_dir"})
     json.dumps(doc, allow_nan=False)

@@ -670,13 +670,14 @@ def _distance_to_polyline(p: np.ndarray, line: np.ndarray) -> np.ndarray:
 def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None = None,
                       subset_sizes: Sequence[int] = SUBSET_SIZES, clock_drift: bool = True,
                       single_satellites: int = 5, without_cpp: bool = True,
-                      plots_dir: str | Path | None = None, progress: bool = True
-                      ) -> dict[str, Any]:
+                      plots_dir: str | Path | None = None, progress: bool = True,
+                      tracking: bool = True) -> dict[str, Any]:
     """The thesis' experiments on a loaded recording with a reference (see the module
     docstring). ``end_s``: replay only the first seconds; ``subset_sizes`` (tables 18–20),
     ``clock_drift`` (table 21), ``single_satellites`` (how many of the best five for fig. 14)
     and ``without_cpp`` (the literal ``use_cpp=False`` runs) trim the work for a quick run (the
-    keys stay, empty)."""
+    keys stay, empty); ``tracking`` adds the designated-target and landmark evaluations
+    (``backend.reports.tracking``: seed 002 fig. 7, seed 000 fig. 10)."""
     from estimator.pipeline import FusionOptions
 
     if rec.reference is None:
@@ -773,6 +774,24 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
             five, pipeline)
 
     report["structure"] = _structure(rp, main)
+    if tracking:
+        from backend.reports.tracking import (
+            default_clicks,
+            evaluate_landmarks,
+            evaluate_tracking,
+            run_fusion,
+        )
+
+        # The evaluation's default click times (45-78 s) when the replay reaches them, else
+        # three times spread over the scored window.
+        times = [t for t in (45.0, 52.0, 60.0, 66.0, 72.0, 78.0) if t < rp.duration - 5.0]
+        times = times or list(np.linspace(init_s, rp.duration - 5.0, 3))
+        clicks = [c for c in default_clicks(rec, times_s=times) if c.frame < len(rp.vo)]
+        show("tracking and landmark evaluation")
+        run = run_fusion(rec, vo_outputs=rp.vo, snapshot_frames=[c.frame for c in clicks],
+                         options=FusionOptions(keep_after_s=init_s), end_s=end_s)
+        report["tracking"] = evaluate_tracking(rec, run, clicks, end_s=end_s)
+        report["landmarks"] = evaluate_landmarks(rec, run)
     fusion_s = main.wall_s
     vo_s = (rp.vo_ms + rp.decode_ms) * len(rp.vo) / 1e3
     report["realtime_factor"] = rp.duration / max(fusion_s + vo_s, 1e-9)
@@ -1042,6 +1061,10 @@ def format_replay_report(report: dict[str, Any]) -> str:
     stages = ", ".join(f"{k} {v:.2f}" for k, v in t.items())
     lines += ["", f"realtime factor {report['realtime_factor']:.2f} (VO + INS+VO+CPP fusion); "
                   f"ms per call/frame: {stages}"]
+    if report.get("tracking"):
+        from backend.reports.tracking import format_tracking_report
+
+        lines += ["", format_tracking_report(report["tracking"], report.get("landmarks"))]
     if report.get("plots"):
         lines.append("plots: " + ", ".join(report["plots"]))
     return "\n".join(lines)
@@ -1071,7 +1094,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise ValueError("replay: add --report to run the thesis' experiments (the interactive "
                          "replay is `berthing-aid serve`)")
     report = _json_safe(replay_report(path, init_s=args.init, end_s=args.end,
-                                      plots_dir=args.plots, progress=not args.quiet))
+                                      plots_dir=args.plots, progress=not args.quiet,
+                                      tracking=not args.no_tracking))
     print(json.dumps(report, indent=2, allow_nan=False) if args.json
           else format_replay_report(report))
     return 0
@@ -1091,5 +1115,7 @@ def add_replay_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--end", type=float, default=None, metavar="S",
                    help="replay only the first S seconds (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--no-tracking", action="store_true",
+                   help="skip the designated-target and landmark evaluations")
     p.set_defaults(func=cmd_replay)
     return p
