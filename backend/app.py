@@ -40,6 +40,7 @@ class Settings:
     max_sessions: int = 4
     engine_factory: EngineFactory = create_engine
     checkpoint_interval_s: float | None = 10.0  # engine copies for backward seeks; None: off
+    abandoned_after_s: float = 120.0  # at the session limit, reclaim one unwatched this long
     announce: bool = False  # print the 3-D viewer's URL once it listens (the CLI does)
 
 
@@ -47,7 +48,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     catalog = RecordingCatalog(settings.recordings_dir, settings.default_recording)
     manager = SessionManager(catalog, settings.engine_factory, settings.max_sessions,
-                             settings.checkpoint_interval_s)
+                             settings.checkpoint_interval_s, settings.abandoned_after_s)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

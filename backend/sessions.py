@@ -302,6 +302,9 @@ class Session:
             self.berth_line = BerthLine(np.asarray(rec.hull.berth_line_ned, float).reshape(2, 2),
                                         "recording", frame="recording")
         self._subscribers: set[Subscriber] = set()
+        # When the last client left (monotonic s); None while watched. A session nobody has
+        # watched for a while (a browser that crashed) may be reclaimed by the manager.
+        self.unwatched_since: float | None = time.monotonic()
         # The last frame played to clients (or that would have been, unwatched): what a client
         # joining now must see, even while paused.
         self._current_frame: tuple[FrameResult, Any | None] | None = None
@@ -387,6 +390,7 @@ class Session:
     def subscribe(self, subscriber: Subscriber) -> None:
         with self.lock:
             self._subscribers.add(subscriber)
+            self.unwatched_since = None
             current = self._current_frame
         subscriber.offer(json.dumps({"type": "status",
                                      "session": self.status_brief()}).encode(), None)
@@ -399,6 +403,8 @@ class Session:
     def unsubscribe(self, subscriber: Subscriber) -> None:
         with self.lock:
             self._subscribers.discard(subscriber)
+            if not self._subscribers:
+                self.unwatched_since = time.monotonic()
 
     @property
     def client_count(self) -> int:
@@ -946,10 +952,12 @@ class SessionManager:
     """Creates, finds and closes sessions (bounded: each one is a CPU-bound thread)."""
 
     def __init__(self, catalog: RecordingCatalog, engine_factory: EngineFactory,
-                 max_sessions: int = 4, checkpoint_interval_s: float | None = 10.0) -> None:
+                 max_sessions: int = 4, checkpoint_interval_s: float | None = 10.0,
+                 abandoned_after_s: float = 120.0) -> None:
         self.catalog = catalog
         self.engine_factory = engine_factory
         self.max_sessions = max_sessions
+        self.abandoned_after_s = abandoned_after_s
         self.checkpoint_interval_s = checkpoint_interval_s
         self._sessions: dict[str, Session] = {}
         self._lock = threading.Lock()
@@ -960,9 +968,11 @@ class SessionManager:
                paused: bool = False, prediction_seconds: int = 5,
                body_height_m: float | None = None) -> Session:
         with self._lock:
-            if len(self._sessions) >= self.max_sessions:
-                raise TooMany(f"{len(self._sessions)} sessions are open (the limit is "
-                              f"{self.max_sessions}); delete one first")
+            full = len(self._sessions) >= self.max_sessions
+        if full and not self._reclaim_abandoned():
+            raise TooMany(f"{len(self._sessions)} sessions are open (the limit is "
+                          f"{self.max_sessions}) and all were watched within the last "
+                          f"{self.abandoned_after_s:g} s; delete one first")
         rec = self.catalog.load(recording)
         session = Session(uuid.uuid4().hex[:12], recording, rec, self.engine_factory, options,
                           speed, prediction_seconds, self.checkpoint_interval_s, body_height_m)
@@ -972,6 +982,17 @@ class SessionManager:
             listener(session)
         session.start(paused=paused)
         return session
+
+    def _reclaim_abandoned(self) -> bool:
+        """Delete the session unwatched the longest, if longer than ``abandoned_after_s``."""
+        now = time.monotonic()
+        idle = [(now - s.unwatched_since, s.id) for s in self.all()
+                if s.unwatched_since is not None]
+        if not idle or max(idle)[0] < self.abandoned_after_s:
+            return False
+        log.info("reclaiming session %s, unwatched for %.0f s", max(idle)[1], max(idle)[0])
+        self.delete(max(idle)[1])
+        return True
 
     def get(self, session_id: str) -> Session:
         with self._lock:

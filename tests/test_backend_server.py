@@ -593,6 +593,15 @@ def test_session_limit(ref_live: Live):
             r = client.post("/api/sessions", json={"recording": RECORDING})
             assert r.status_code == 429 and "limit" in r.json()["detail"]
             assert len(client.get("/api/sessions").json()["sessions"]) == 4
+            # A session nobody has watched for long (a crashed browser) makes room.
+            ref_live.app.state.manager.abandoned_after_s = 0.2
+            time.sleep(0.3)
+            r = client.post("/api/sessions", json={"recording": RECORDING, "paused": True})
+            assert r.status_code == 201
+            open_ids = {s["id"] for s in client.get("/api/sessions").json()["sessions"]}
+            assert ids[0] not in open_ids and r.json()["id"] in open_ids and len(open_ids) == 4
+            ids = ids[1:] + [r.json()["id"]]
         finally:
+            ref_live.app.state.manager.abandoned_after_s = 120.0
             for sid in ids:
                 client.delete(f"/api/sessions/{sid}")
