@@ -82,6 +82,7 @@ class ViserView:
         self._last_consolidation = 0.0
         self._last_t = -math.inf
         self._needs_rebuild = False
+        self._framed = False  # initial camera pointed at this session's ship yet
 
     @property
     def port(self) -> int:
@@ -108,6 +109,7 @@ class ViserView:
         with self._lock:
             self._detach()
             self._session = session
+            self._framed = False
             session.frame_listeners.append(self.on_frame)
             self._build_static(session)
             # show what the session has so far at once (it may be paused or ended)
@@ -212,7 +214,19 @@ class ViserView:
         self._nodes["reference"] = self.server.scene.add_line_segments(
             "/reference", _segments(ref), GREY, thickness=2.0, thickness_units="screen")
 
+    def _frame_view(self, state: Any) -> None:
+        """Point the viewers' initial camera ("Reset View") at the approach: above and behind
+        the ship, looking ahead along its heading towards the berth."""
+        forward = np.asarray(state.C_body_to_level, dtype=float)[:, 0] * [1.0, 1.0, 0.0]
+        forward /= max(float(np.linalg.norm(forward)), 1e-9)
+        ship = np.asarray(state.position_ned, dtype=float)
+        self.server.initial_camera.look_at = ship + 30.0 * forward
+        self.server.initial_camera.position = ship - 30.0 * forward + [0.0, 0.0, -35.0]
+        self._framed = True
+
     def _update_pose(self, state: Any) -> None:
+        if not self._framed:
+            self._frame_view(state)
         ship = self._nodes["ship"]
         ship.position = np.asarray(state.position_ned, dtype=float)
         ship.wxyz = _wxyz(state.C_body_to_level)
