@@ -549,11 +549,20 @@ class Session:
 
     def frame_state(self, t: float) -> Any:
         """The stored state of the frame at recording time ``t`` (within FRAME_MATCH_S)."""
-        state = self.state_at(min(t + FRAME_MATCH_S, self.end_gpst - self.start_gpst))
-        if abs(state.time - self.gpst(t)) > FRAME_MATCH_S:
-            raise NotFound(f"no fused pose for a frame at t = {t:g} s (nearest earlier at "
-                           f"{state.time - self.start_gpst:.3f} s)")
-        return state
+        g = self.gpst(t)
+        with self.lock:
+            if not self._times:
+                raise Conflict("no fused pose stored yet")
+            # The stored frame nearest to t: the newest frame itself must match (t + tolerance
+            # may lie beyond the history by a rounding error).
+            i = bisect.bisect_left(self._times, g - FRAME_MATCH_S)
+            if i < len(self._times) and abs(self._times[i] - g) <= FRAME_MATCH_S:
+                return self._states[i]
+            last = self._times[-1] - self.start_gpst
+        if g > self.gpst(last) + FRAME_MATCH_S:
+            raise Conflict(f"t = {t:g} s has not been replayed yet (fused poses up to "
+                           f"{last:.3f} s)")
+        raise NotFound(f"no fused pose for a frame at t = {t:g} s")
 
     def trajectory(self) -> dict[str, Any]:
         with self.lock:
