@@ -59,15 +59,9 @@ class Sample:
 def run(sim: Sim, options: FusionOptions, vo_feed=None, every: int = 10):
     """Drive the fusion with the simulated messages in time order; sample the errors."""
     f = Fusion(sim.calibration, sim.nav, options)
-    imu, epochs = sim.imu, sim.epochs
     out: list[Sample] = []
     p0 = None
-    ke = 0
-    for k, t in enumerate(imu.time):
-        f.process_imu(t, imu.gyro[k], imu.accel[k])
-        while ke < len(epochs[0]) and epochs[0][ke].time <= t + 1e-9:
-            f.process_gnss(epochs[0][ke].time, [epochs[i][ke] for i in range(4)])
-            ke += 1
+    for k, t in sim.feed(f):
         if vo_feed is not None and k % 10 == 0:
             vo_feed(f, t)
         if f.ekf is None or k % every:

@@ -30,7 +30,7 @@ SCORE_FROM_S = 20.0
 @pytest.fixture(scope="module")
 def large_run():
     run = simulate_sensors(SC, SEED, DURATION_S)
-    nav, motion, imu, epochs, cal = run.nav, run.motion, run.imu, run.epochs, run.calibration
+    nav, motion, cal = run.nav, run.motion, run.calibration
     cam = cal.camera
     f = Fusion(cal, nav, FusionOptions(use_vo=True, landmarks=None))
     rng = np.random.default_rng(1)
@@ -39,12 +39,7 @@ def large_run():
     C_w_l = o0 = None
     S0 = 3.0
     errs = []
-    ke = 0
-    for k, t in enumerate(imu.time):
-        f.process_imu(t, imu.gyro[k], imu.accel[k])
-        while ke < len(epochs[0]) and epochs[0][ke].time <= t + 1e-9:
-            f.process_gnss(epochs[0][ke].time, [epochs[i][ke] for i in range(4)])
-            ke += 1
+    for k, t in run.feed(f):
         rel = t - SC.start_gpst
         if k % 10 or rel < VO_FROM_S:
             continue

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,6 +58,19 @@ class SensorRun:
     epochs: list[list[GnssEpoch]]
     imu_truth: dict
     gnss_truth: GnssTruth
+
+    def feed(self, fusion) -> Iterator[tuple[int, float]]:
+        """Drive ``fusion`` (``estimator.pipeline.Fusion``) with the IMU samples and the four
+        receivers' epochs in time order, as a live feed would; yields (sample index, time)
+        after each IMU sample so that callers can add frames or sample errors."""
+        imu, epochs = self.imu, self.epochs
+        e = 0
+        for k, t in enumerate(imu.time):
+            fusion.process_imu(t, imu.gyro[k], imu.accel[k])
+            while e < len(epochs[0]) and epochs[0][e].time <= t + 1e-9:
+                fusion.process_gnss(epochs[0][e].time, [rx[e] for rx in epochs])
+                e += 1
+            yield k, float(t)
 
 
 def simulate_sensors(
