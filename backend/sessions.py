@@ -411,6 +411,20 @@ class Session:
         with self.lock:
             return len(self._subscribers)
 
+    def redraw_if_paused(self) -> None:
+        """While paused no frame flows: re-send the frame on screen so that a new target or
+        berth line shows at once."""
+        if self.replayer.state is not ReplayState.PAUSED:
+            return
+        with self.lock:
+            current = self._current_frame if self._subscribers else None
+        if current is None:
+            return
+        try:
+            self._publish(self._frame_message(*current))
+        except Exception:  # a redraw is a courtesy: never fail the request for it
+            log.exception("redraw of the paused frame failed")
+
     def _publish(self, message: tuple[bytes, bytes | None]) -> None:
         with self.lock:
             subscribers = list(self._subscribers)
@@ -660,6 +674,7 @@ class Session:
             self._start_tracking(target, state, cov)
             self._targets[target.id] = target
             self._track(target, self._latest_state)
+        self.redraw_if_paused()
         return target
 
     def _camera(self, state: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -802,6 +817,7 @@ class Session:
         with self.lock:
             self.target(target_id)
             del self._targets[target_id]
+        self.redraw_if_paused()
 
     # -------------------------------------------------------------------- berth line
 
@@ -811,7 +827,8 @@ class Session:
             raise Unprocessable("the berth line's two points are less than 0.1 m apart")
         with self.lock:
             self.berth_line = BerthLine(line, "ned")
-            return self.berth_line
+        self.redraw_if_paused()
+        return self.berth_line
 
     def set_berth_line_image(self, frame_t: float | None, points_uv: np.ndarray) -> BerthLine:
         """Berth line from two pixels on the quay's water line (rays meet the water plane)."""
@@ -832,7 +849,7 @@ class Session:
         line = self.set_berth_line_ned(np.array(ends))
         with self.lock:
             self.berth_line = BerthLine(line.line_ne, "image")
-            return self.berth_line
+        return self.berth_line
 
     def berth_status(self) -> dict[str, Any]:
         """The berth line with the bow/stern distance and approach speed at the current pose."""
@@ -889,6 +906,7 @@ class Session:
     def clear_berth_line(self) -> None:
         with self.lock:
             self.berth_line = None
+        self.redraw_if_paused()
 
     # -------------------------------------------------------------------------- report
 

@@ -470,6 +470,21 @@ def test_pause_seek_and_delete(live: Live, replayed: dict):
         joined, _ = asyncio.run(_collect(f"{live.ws}/api/sessions/{sid}/stream",
                                          lambda f, s: len(f) >= 1, timeout=10))
         assert joined[0].header["t"] == pytest.approx(4.0, abs=0.051)
+
+        # While paused, a new target shows at once: the frame on screen is sent again.
+        async def redrawn() -> list[Frame]:
+            watch = asyncio.create_task(_collect(f"{live.ws}/api/sessions/{sid}/stream",
+                                                 lambda f, s: len(f) >= 2, timeout=15))
+            await asyncio.sleep(0.5)
+            r = await asyncio.to_thread(client.post, f"{base}/targets",
+                                        json={"u": 480.0, "v": 560.0})  # on the water
+            assert r.status_code == 201, r.text
+            return (await watch)[0]
+
+        before, after = asyncio.run(redrawn())
+        assert after.header["t"] == before.header["t"]
+        n_before = len(before.header["overlay"]["targets"])
+        assert len(after.header["overlay"]["targets"]) == n_before + 1
         assert client.get(f"{base}/pose", params={"t": 6.0}).status_code == 409  # not yet
         for body in ({"action": "seek"}, {"action": "fly"}, {"action": "seek", "time": 500},
                      {"action": "speed", "speed": 0}, {"action": "speed", "speed": "fast"},
