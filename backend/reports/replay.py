@@ -776,6 +776,7 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
     report["structure"] = _structure(rp, main)
     if tracking:
         from backend.reports.tracking import (
+            DEFAULT_CLICK_TIMES_S,
             default_clicks,
             evaluate_landmarks,
             evaluate_tracking,
@@ -784,7 +785,7 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
 
         # The evaluation's default click times (45-78 s) when the replay reaches them, else
         # three times spread over the scored window.
-        times = [t for t in (45.0, 52.0, 60.0, 66.0, 72.0, 78.0) if t < rp.duration - 5.0]
+        times = [t for t in DEFAULT_CLICK_TIMES_S if t < rp.duration - 5.0]
         times = times or list(np.linspace(init_s, rp.duration - 5.0, 3))
         clicks = [c for c in default_clicks(rec, times_s=times) if c.frame < len(rp.vo)]
         show("tracking and landmark evaluation")

@@ -278,7 +278,10 @@ def _rebuild_scene(rec: Any) -> Any | None:
     return scene
 
 
-def default_clicks(rec: Any, times_s: Sequence[float] = (45.0, 52.0, 60.0, 66.0, 72.0, 78.0),
+DEFAULT_CLICK_TIMES_S = (45.0, 52.0, 60.0, 66.0, 72.0, 78.0)  # s after the start
+
+
+def default_clicks(rec: Any, times_s: Sequence[float] = DEFAULT_CLICK_TIMES_S,
                    per_time: int = 3, kinds: Sequence[str] = CLICK_KINDS,
                    range_m: tuple[float, float] = CLICK_RANGE_M, seed: int = 0) -> list[Click]:
     """Designated quay points for the evaluation: at each of ``times_s`` (s after the

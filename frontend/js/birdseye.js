@@ -3,7 +3,7 @@
 // give distances at a glance; the same distance colours as on the video.
 
 import { colors } from "./theme.js";
-import { label } from "./overlay.js";
+import { drawPick, label } from "./overlay.js";
 
 const RANGES_M = [5, 10, 20, 30, 50, 100, 200, 500, 1000]; // half-width of the view
 const MIN_SHIP_PX = 22;
@@ -113,7 +113,7 @@ export class BirdsEye {
     this._heading(ctx, plan, range, c);
     ctx.filter = "none";
     for (const t of plan.targets || []) this._target(ctx, t, frame.overlay.targets, c);
-    for (const p of opts.picks || []) this._pick(ctx, p, c);
+    for (const p of opts.picks || []) drawPick(ctx, this.toScreen(p), c, 7);
     this._north(ctx, w, c);
     this._scaleBar(ctx, step, h, c);
     label(ctx, w - 86, h - 16, this.mode === "head" ? "HEAD-UP" : "NORTH-UP", c.planText,
@@ -226,16 +226,6 @@ export class BirdsEye {
     const r = readouts?.find((o) => o.id === t.id);
     const text = r ? `${r.label || t.id} ${r.distance_m.toFixed(1)} m` : t.id;
     label(ctx, x + 9, y - 10, text, c.target, c.targetBg, 12);
-  }
-
-  _pick(ctx, p, c) {
-    const [x, y] = this.toScreen(p);
-    ctx.strokeStyle = c.berth;
-    ctx.lineWidth = 3;
-    ctx.beginPath();
-    ctx.moveTo(x - 7, y - 7); ctx.lineTo(x + 7, y + 7);
-    ctx.moveTo(x + 7, y - 7); ctx.lineTo(x - 7, y + 7);
-    ctx.stroke();
   }
 
   _north(ctx, w, c) {

@@ -198,12 +198,13 @@ function ring(ctx, x, y) {
   ctx.stroke();
 }
 
-function drawPick(ctx, [x, y], c) {
+/** A cross where the first berth-line click landed (video and plan). */
+export function drawPick(ctx, [x, y], c, half = 9) {
   ctx.strokeStyle = c.berth;
   ctx.lineWidth = 3;
   ctx.beginPath();
-  ctx.moveTo(x - 9, y - 9); ctx.lineTo(x + 9, y + 9);
-  ctx.moveTo(x + 9, y - 9); ctx.lineTo(x - 9, y + 9);
+  ctx.moveTo(x - half, y - half); ctx.lineTo(x + half, y + half);
+  ctx.moveTo(x + half, y - half); ctx.lineTo(x - half, y + half);
   ctx.stroke();
 }
 
