@@ -310,8 +310,12 @@ class Session:
         self._current_frame: tuple[FrameResult, Any | None] | None = None
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
+        engine_options = dict(options)
+        if not self.water.source.startswith("unknown"):
+            # The landmark refinement drops points on or below the water (reflections).
+            engine_options.setdefault("body_origin_height_m", self.water.down_m)
         self.replayer = Replayer(
-            rec, lambda: engine_factory(rec.calibration, rec.nav, dict(options)), self,
+            rec, lambda: engine_factory(rec.calibration, rec.nav, dict(engine_options)), self,
             speed=speed, checkpoint_interval_s=checkpoint_interval_s,
             shared=(rec, rec.calibration, rec.nav))
 

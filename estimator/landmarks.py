@@ -46,7 +46,7 @@ from .frames import skew
 
 @dataclass
 class LandmarkParams:
-    pixel_sigma_px: float = 1.0  # tracked corner noise (LK), full-size image pixels
+    pixel_sigma_px: float = 2.0  # tracked corner noise (LK: jitter and slow slide), full-size px
     min_views: int = 5  # views before a refined landmark replaces the raw point
     gate_probability: float = 0.999  # χ² gate (2 dof) of a view against the prior
     max_strikes: int = 3  # gated views running before the landmark is dropped (re-seeded)
@@ -60,6 +60,17 @@ class LandmarkParams:
     # degree, varying over seconds) is a fake parallax larger than the true one, and the VO's
     # own triangulation (its relative poses) does better. None: no limit.
     max_depth_m: float | None = 60.0
+    # Reported (``points``/``get``) only when the σ along the last viewing ray is below this
+    # fraction of the range (the views had enough parallax) ...
+    max_relative_sigma: float = 0.05
+    # ... the views agree with the estimate (mean normalised innovation² of the accepted
+    # views below this: a water pattern drifting with the waves, a corner made by two
+    # surfaces at different depths or a track sliding along an edge do not) ...
+    max_mean_nis: float = 3.0
+    # ... and the point is above the water plane (NED down of the water surface in L; None:
+    # unknown) by at least this much: reflections and water patterns lie on or below it.
+    water_down_m: float | None = None
+    water_margin_m: float = 0.05
 
 
 @dataclass
@@ -128,6 +139,7 @@ class LandmarkMap:
         self.alive = np.zeros(0, bool)
         self.last_time = np.zeros(0)
         self.floor = np.zeros((0, 3, 3))  # camera-position covariance of the last view
+        self.last_camera = np.zeros((0, 3))  # camera centre of the last accepted view
         self.nis = np.zeros(0)  # sum of the normalised innovations² of the accepted views
         self._sorted = np.zeros(0, np.int64)  # ids sorted, and their rows, for look-ups
         self._sorted_rows = np.zeros(0, np.int64)
@@ -186,6 +198,7 @@ class LandmarkMap:
         self.alive[r] = True
         self.last_time[r] = time
         self.floor[r] = 0.0
+        self.last_camera[r] = np.nan
         self.nis[r] = 0.0
         n_new = int(new.sum())
         if n_new:
@@ -197,6 +210,7 @@ class LandmarkMap:
             self.alive = np.concatenate([self.alive, np.ones(n_new, bool)])
             self.last_time = np.concatenate([self.last_time, np.full(n_new, float(time))])
             self.floor = np.concatenate([self.floor, np.zeros((n_new, 3, 3))])
+            self.last_camera = np.concatenate([self.last_camera, np.full((n_new, 3), np.nan)])
             self.nis = np.concatenate([self.nis, np.zeros(n_new)])
             order = np.argsort(self.ids, kind="stable")
             self._sorted, self._sorted_rows = self.ids[order], order.astype(np.int64)
@@ -290,6 +304,7 @@ class LandmarkMap:
         self.nis[a] += d2[accept]
         self.strikes[a] = 0
         self.last_time[a] = float(t)
+        self.last_camera[a] = p
         if pose_cov is not None:
             self.floor[a] = np.asarray(pose_cov, float)[:3, :3]
         g = rows[gated]
@@ -304,22 +319,63 @@ class LandmarkMap:
 
     # ------------------------------------------------------------------------ output
 
+    def reportable(self, rows: np.ndarray, min_views: int | None = None) -> np.ndarray:
+        """Mask of the landmark rows good enough to report: alive with ``min_views`` views
+        (default ``params.min_views``), σ along the last viewing ray at most
+        ``max_relative_sigma`` of the range, mean NIS at most ``max_mean_nis``, above the
+        water plane when it is known."""
+        prm = self.params
+        m = prm.min_views if min_views is None else int(min_views)
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        ok = self.alive[rows] & (self.views[rows] >= m)
+        if not ok.any():
+            return ok
+        views = np.maximum(self.views[rows], 1)
+        ok &= self.nis[rows] / (2.0 * views) <= prm.max_mean_nis
+        cam = self.last_camera[rows]
+        seen = np.isfinite(cam).all(axis=1)
+        d = self.x[rows] - np.where(seen[:, None], cam, 0.0)
+        rng = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+        u = d / rng[:, None]
+        s_ray = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", u, self.P[rows], u), 0.0))
+        ok &= ~seen | (s_ray <= prm.max_relative_sigma * rng)
+        if prm.water_down_m is not None:
+            ok &= self.x[rows, 2] <= prm.water_down_m - prm.water_margin_m
+        return ok
+
+    def rejected(self, ids: np.ndarray) -> np.ndarray:
+        """Mask of the ids whose landmark failed a check — dropped by the gate, views that do
+        not agree (NIS), or below the water — as opposed to reportable or still converging
+        (too few views or too little parallax so far)."""
+        prm = self.params
+        rows = self.lookup(ids)
+        out = np.zeros(len(rows), bool)
+        have = rows >= 0
+        r = rows[have]
+        bad = ~self.alive[r]
+        bad |= (self.views[r] >= prm.min_views) & \
+            (self.nis[r] / (2.0 * np.maximum(self.views[r], 1)) > prm.max_mean_nis)
+        if prm.water_down_m is not None:
+            bad |= (self.views[r] >= prm.min_views) & \
+                (self.x[r, 2] > prm.water_down_m - prm.water_margin_m)
+        out[have] = bad
+        return out
+
     def points(self, min_views: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(ids, positions (N,3), covariances (N,3,3)) of the live landmarks with at least
-        ``min_views`` accepted views (default ``params.min_views``); the covariance includes
-        the camera-position floor (see the module docstring)."""
-        m = self.params.min_views if min_views is None else int(min_views)
-        sel = self.alive & (self.views >= m)
+        """(ids, positions (N,3), covariances (N,3,3)) of the reportable landmarks
+        (``reportable``); the covariance includes the camera-position floor (see the module
+        docstring)."""
+        sel = np.flatnonzero(self.alive)
+        sel = sel[self.reportable(sel, min_views)]
         return self.ids[sel].copy(), self.x[sel].copy(), self.P[sel] + self.floor[sel]
 
     def get(self, ids: np.ndarray, min_views: int | None = None
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(mask of ids refined enough, positions (N,3), covariances (N,3,3)) for given ids,
-        NaN where the mask is False."""
-        m = self.params.min_views if min_views is None else int(min_views)
+        """(mask of ids reportable (``reportable``), positions (N,3), covariances (N,3,3))
+        for given ids, NaN where the mask is False."""
         rows = self.lookup(ids)
         ok = rows >= 0
-        ok[ok] = self.alive[rows[ok]] & (self.views[rows[ok]] >= m)
+        ok[ok] = self.reportable(rows[ok], min_views)
         xyz = np.full((len(rows), 3), np.nan)
         cov = np.full((len(rows), 3, 3), np.nan)
         xyz[ok] = self.x[rows[ok]]

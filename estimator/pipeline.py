@@ -125,6 +125,10 @@ class FusionOptions:
     # with every view and the fused camera pose; refined points replace the raw ones in
     # ``structure`` once they have ``landmarks.min_views`` views. None: raw points only.
     landmarks: LandmarkParams | None = field(default_factory=LandmarkParams)
+    # Height of the body origin above the waterline (hull.json ``body_origin_height_m``, an
+    # installation constant): the water plane lies that far below the world origin, and
+    # structure points on or below it (reflections, water patterns) are not reported.
+    body_origin_height_m: float | None = None
 
 
 @dataclass
@@ -315,7 +319,10 @@ class Fusion:
         cam = calibration.camera
         self.landmarks: LandmarkMap | None = None
         if self.vo is not None and opt.landmarks is not None:
-            self.landmarks = LandmarkMap(0.5 * (cam.K[0, 0] + cam.K[1, 1]), opt.landmarks)
+            lp = opt.landmarks
+            if opt.body_origin_height_m is not None and lp.water_down_m is None:
+                lp = replace(lp, water_down_m=float(opt.body_origin_height_m))
+            self.landmarks = LandmarkMap(0.5 * (cam.K[0, 0] + cam.K[1, 1]), lp)
         self._K = np.asarray(cam.K, float)
         self._dist = np.asarray(cam.distortion, float).ravel()
 
@@ -427,9 +434,12 @@ class Fusion:
                             scale_converged=converged, message=self._message)
 
     def structure(self, refined: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Port-structure points in L (scaled, drift-corrected), their 1-σ (m), ids. With
-        ``refined`` (and the landmark refinement on) a point whose landmark EKF has enough
-        views is its refined position, its σ the RMS per axis of the landmark covariance."""
+        """Port-structure points in L, their 1-σ (m), ids. Without ``refined``: the VO points
+        (scaled, drift-corrected). With it (and the landmark refinement on): a reportable
+        landmark (``LandmarkMap.reportable``: enough views and parallax, views that agree,
+        above the water) gives its refined position, its σ the RMS per axis of its covariance;
+        a rejected one (``LandmarkMap.rejected``: water patterns, reflections, mistracks) is
+        left out; one still converging keeps the VO point with the larger of the two σ."""
         ids, pts, sig = [], [], []
         for pid, p in self._frozen.items():
             ids.append(pid)
@@ -448,9 +458,17 @@ class Fusion:
             return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
         pts_a, sig_a, ids_a = np.array(pts), np.array(sig), np.array(ids, np.int64)
         if refined and self.landmarks is not None:
-            ok, xyz, cov = self.landmarks.get(ids_a)
+            lm = self.landmarks
+            ok, xyz, cov = lm.get(ids_a)
             pts_a[ok] = xyz[ok]
             sig_a[ok] = np.sqrt(np.trace(cov[ok], axis1=1, axis2=2) / 3.0)
+            # Still converging: the VO point, with the landmark's (larger) σ when it has one.
+            rows = lm.lookup(ids_a)
+            conv = ~ok & (rows >= 0)
+            sig_a[conv] = np.maximum(sig_a[conv], np.sqrt(np.trace(
+                lm.P[rows[conv]] + lm.floor[rows[conv]], axis1=1, axis2=2) / 3.0))
+            keep = ok | ~lm.rejected(ids_a)
+            return pts_a[keep], sig_a[keep], ids_a[keep]
         return pts_a, sig_a, ids_a
 
     def timing(self) -> dict[str, float]:

@@ -140,7 +140,7 @@ def test_pose_uncertainty_weights_views_down(scene):
     C0, p0 = path[0]
     runs = {}
     for name, att_deg in (("exact", None), ("0.3 deg", 0.3)):
-        lm = LandmarkMap(FOCAL)
+        lm = LandmarkMap(FOCAL, LandmarkParams(pixel_sigma_px=1.0, max_relative_sigma=np.inf))
         lm.seed_from_view([5], [scene + 3.0 * (scene - p0) / np.linalg.norm(scene - p0)], p0)
         rng = np.random.default_rng(1)
         for k in range(1, 31):
@@ -174,9 +174,48 @@ def test_camera_pose_covariance_and_priors():
     assert angle == pytest.approx(np.arctan(0.1))
 
 
+def test_only_trustworthy_landmarks_are_reported(scene):
+    """A landmark is reported once it has the views, the parallax (σ along the ray), views
+    that agree, and lies above the water: a water pattern that drifts, a reflection (a point
+    below the water plane) and a point seen without parallax are not."""
+    water_down = 0.6
+    params = LandmarkParams(pixel_sigma_px=1.0, water_down_m=water_down)
+    path = camera_path(41)
+    C0, p0 = path[0]
+    reflection = np.array([14.0, 6.0, water_down + 1.5])  # mirror image below the surface
+    points = np.array([scene, scene + [1.0, -2.0, 0.5], reflection, scene, scene])
+    # ids: 0 a quay point, 1 one near the direction of travel, 2 a reflection, 3 a drifting
+    # water pattern, 4 a point seen twice only
+    lm = LandmarkMap(FOCAL, params)
+    u = (points - p0) / np.linalg.norm(points - p0, axis=1, keepdims=True)
+    lm.seed_from_view(np.arange(5), points + 2.0 * u, p0)
+    rng = np.random.default_rng(3)
+    for k in range(1, 41):
+        C, p = path[k]
+        seen = points.copy()
+        # id 3: a water pattern drifting 0.4 m/s sideways; id 4: only seen at the start
+        seen[3] = scene + np.array([0.0, 0.04 * k, 0.0])
+        z = observe(seen, C, p, 1.0, rng)
+        ids = np.arange(5) if k <= 2 else np.arange(4)
+        lm.update(0.1 * k, C, p, None, ids, z[ids])
+    ids, xyz, _cov = lm.points()
+    # id 1 lies near the direction of travel: 4 m of travel leave it 14 % uncertain in range
+    assert set(ids.tolist()) == {0}
+    assert not lm.known([3])[0]  # the drifting pattern's views were gated until dropped
+    np.testing.assert_allclose(xyz[0], scene, atol=0.3)
+    # the reflection itself was triangulated where it appears (below the water)
+    assert lm.known([2])[0] and lm.x[lm.lookup([2])[0], 2] > water_down
+    # without the water plane, the reflection is reported
+    lm.params.water_down_m = None
+    assert 2 in lm.points()[0]
+    mask, xyz, _ = lm.get(np.array([0, 4, 99]))
+    assert mask.tolist() == [True, False, False] and np.isnan(xyz[1:]).all()
+
+
 def test_fusion_structure_uses_refined_landmarks():
-    """``Fusion.structure()`` swaps in the refined point of every landmark with enough views
-    (the raw VO points with ``refined=False``); without refinement both are the raw ones."""
+    """``Fusion.structure()`` swaps in the refined point of every reportable landmark, leaves
+    out the rejected ones and keeps the VO point of those still converging (the raw VO points
+    with ``refined=False``)."""
     from estimator.pipeline import Fusion, FusionOptions
     from estimator.records import Calibration, ImuCalibration, NavigationData
     from recordings.sim.scenarios import SMALL_BOAT
@@ -190,12 +229,17 @@ def test_fusion_structure_uses_refined_landmarks():
     f._frozen_sigma = {1: 0.5, 2: 0.5}
     f.landmarks.seed(np.array([2]), np.array([[12.5, 1.0, -1.0]]), np.eye(3)[None] * 0.01)
     f.landmarks.views[:] = 10
+    f._frozen[3] = np.array([14.0, 2.0, -1.0])
+    f._frozen_sigma[3] = 0.5
+    f.landmarks.seed(np.array([3]), np.array([[14.0, 2.0, -1.0]]), np.eye(3)[None] * 0.01)
+    f.landmarks.alive[f.landmarks.lookup([3])] = False  # dropped by its gate: rejected
     pts, sig, ids = f.structure()
     raw, _sig, raw_ids = f.structure(refined=False)
-    np.testing.assert_array_equal(ids, raw_ids)
-    row = int(np.flatnonzero(ids == 2)[0])
-    np.testing.assert_allclose(pts[row], [12.5, 1.0, -1.0])
-    np.testing.assert_allclose(raw[row], [12.0, 1.0, -1.0])
-    assert sig[row] == pytest.approx(0.1)
+    np.testing.assert_array_equal(raw_ids, [1, 2, 3])
+    np.testing.assert_array_equal(ids, [1, 2])  # 1 has no landmark yet: its VO point
+    np.testing.assert_allclose(pts[1], [12.5, 1.0, -1.0])
+    np.testing.assert_allclose(raw[1], [12.0, 1.0, -1.0])
+    np.testing.assert_allclose(pts[0], raw[0])
+    assert sig[1] == pytest.approx(0.1)
     off = Fusion(cal, NavigationData(), FusionOptions(landmarks=None))
     assert off.landmarks is None

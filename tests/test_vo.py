@@ -347,3 +347,45 @@ def test_rendered_blank_gap_starts_new_segment(rendered_run):
         k0 = GAP[-1] + 1
         rel_true = truth[k0 + j][0] @ truth[k0 + i][0].T
         assert angle_deg(rel @ rel_true.T) < 0.3
+
+
+def test_anchor_check_cuts_tracks_on_changing_water():
+    """Front end: the left half is a rigid textured quay panning slowly, the right half water
+    made of two wave patterns drifting in opposite directions. Frame-to-frame LK (with its
+    forward-backward check) follows blends of the water patterns for a long time; checked
+    against the track's anchor image — a pattern that keeps its appearance — they are cut,
+    while the quay's tracks live on."""
+    rng = np.random.default_rng(5)
+
+    def texture(sigma: float) -> np.ndarray:
+        n = cv2.GaussianBlur(rng.normal(0.0, 1.0, (600, 1400)), (0, 0), sigma)
+        return n / n.std()
+
+    quay, wave_a, wave_b = texture(2.5), texture(2.5), texture(2.5)
+
+    def frame(k: int) -> np.ndarray:
+        img = np.empty((600, 960))
+        img[:, :480] = quay[:, 200 + k // 2:680 + k // 2]
+        sa, sb = 220 + k // 2, 220 - k // 2
+        img[:, 480:] = 0.7 * wave_a[:, sa:sa + 480] + 0.7 * wave_b[:, sb:sb + 480]
+        return np.clip(128 + 45 * img, 0, 255).astype(np.uint8)
+
+    from estimator.vo import VoParams
+
+    alive = {}
+    for name, age in (("anchored", VoParams().anchor_max_age), ("chained", 1)):
+        vo = VisualOdometry(CAMERA, VoParams(anchor_max_age=age))
+        vo.process(0.0, frame(0))
+        ids0 = vo._tracks.id.copy()
+        water0 = np.isin(ids0, vo._tracks.id[vo._tracks.uv[:, 0] > 500])
+        for k in range(1, 41):
+            vo.process(0.1 * k, frame(k))
+        live = np.isin(ids0, vo._tracks.id)
+        alive[name] = (int((live & ~water0).sum()), int((live & water0).sum()),
+                       int((~water0).sum()), int(water0.sum()))
+    quay_a, water_a, n_quay, n_water = alive["anchored"]
+    quay_c, water_c, _, _ = alive["chained"]
+    assert n_quay > 50 and n_water > 50
+    assert quay_a > 0.8 * n_quay  # the rigid texture keeps its tracks
+    assert water_c > 0.2 * n_water  # chained LK keeps following the water ...
+    assert water_a < 0.25 * water_c  # ... the anchor check does not
