@@ -252,6 +252,7 @@ class BerthLine:
 class WaterLevel:
     down_m: float  # the water plane's down coordinate in the engine's (world) frame
     source: str
+    known: bool = True  # False: a placeholder (no installation constant, no request)
 
 
 def water_level(rec: Recording, body_height_m: float | None) -> WaterLevel:
@@ -263,7 +264,8 @@ def water_level(rec: Recording, body_height_m: float | None) -> WaterLevel:
         return WaterLevel(float(body_height_m), "request")
     if rec.hull.body_origin_height_m is not None:
         return WaterLevel(float(rec.hull.body_origin_height_m), "hull.json")
-    return WaterLevel(0.0, "unknown: set body_origin_height_m in hull.json or body_height_m")
+    return WaterLevel(0.0, "unknown: set body_origin_height_m in hull.json or body_height_m",
+                      known=False)
 
 
 class Session:
@@ -311,7 +313,7 @@ class Session:
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
         engine_options = dict(options)
-        if not self.water.source.startswith("unknown"):
+        if self.water.known:
             # The landmark refinement drops points on or below the water (reflections).
             engine_options.setdefault("body_origin_height_m", self.water.down_m)
         self.replayer = Replayer(

@@ -29,7 +29,14 @@ what "refined as the views accumulate" means here.
 The pose error of the fusion is slowly varying, not white: treating it as independent per view
 would let ``P_l`` shrink below what the camera positions themselves are known to. ``points``
 therefore reports ``P_l`` plus the camera-position covariance of the landmark's last view (a
-floor). Everything is vectorised over the landmarks of a frame (a few hundred: well under a
+floor).
+
+Reporting (``classify``, ``points``): a landmark is reported once it has the views, the
+parallax (σ along its last ray within a fraction of the range) and views that agree (mean NIS),
+and lies above the water plane when that is known; one that fails the agreement or the water
+test is rejected (water patterns, reflections, mistracks); the rest are still converging.
+
+Everything is vectorised over the landmarks of a frame (a few hundred: well under a
 millisecond).
 """
 
@@ -60,8 +67,8 @@ class LandmarkParams:
     # degree, varying over seconds) is a fake parallax larger than the true one, and the VO's
     # own triangulation (its relative poses) does better. None: no limit.
     max_depth_m: float | None = 60.0
-    # Reported (``points``/``get``) only when the σ along the last viewing ray is below this
-    # fraction of the range (the views had enough parallax) ...
+    # Reported (``classify``, ``points``) only when the σ along the last viewing ray is below
+    # this fraction of the range (the views had enough parallax) ...
     max_relative_sigma: float = 0.05
     # ... the views agree with the estimate (mean normalised innovation² of the accepted
     # views below this: a water pattern drifting with the waves, a corner made by two
@@ -319,68 +326,46 @@ class LandmarkMap:
 
     # ------------------------------------------------------------------------ output
 
-    def reportable(self, rows: np.ndarray, min_views: int | None = None) -> np.ndarray:
-        """Mask of the landmark rows good enough to report: alive with ``min_views`` views
-        (default ``params.min_views``), σ along the last viewing ray at most
-        ``max_relative_sigma`` of the range, mean NIS at most ``max_mean_nis``, above the
-        water plane when it is known."""
+    def _verdicts(self, rows: np.ndarray, min_views: int | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """(reportable, rejected) masks of landmark rows. Reportable: alive with
+        ``min_views`` views (default ``params.min_views``), views that agree (mean NIS at
+        most ``max_mean_nis``), above the water plane when it is known, σ along the last
+        viewing ray at most ``max_relative_sigma`` of the range. Rejected: dropped, or with
+        the views but disagreeing or below the water. Neither: still converging."""
         prm = self.params
         m = prm.min_views if min_views is None else int(min_views)
         rows = np.asarray(rows, np.int64).reshape(-1)
-        ok = self.alive[rows] & (self.views[rows] >= m)
-        if not ok.any():
-            return ok
-        views = np.maximum(self.views[rows], 1)
-        ok &= self.nis[rows] / (2.0 * views) <= prm.max_mean_nis
+        views = self.views[rows]
+        settled = self.alive[rows] & (views >= m)
+        agree = self.nis[rows] / (2.0 * np.maximum(views, 1)) <= prm.max_mean_nis
+        if prm.water_down_m is not None:
+            agree &= self.x[rows, 2] <= prm.water_down_m - prm.water_margin_m
         cam = self.last_camera[rows]
         seen = np.isfinite(cam).all(axis=1)
         d = self.x[rows] - np.where(seen[:, None], cam, 0.0)
         rng = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
         u = d / rng[:, None]
         s_ray = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", u, self.P[rows], u), 0.0))
-        ok &= ~seen | (s_ray <= prm.max_relative_sigma * rng)
-        if prm.water_down_m is not None:
-            ok &= self.x[rows, 2] <= prm.water_down_m - prm.water_margin_m
-        return ok
+        parallax = ~seen | (s_ray <= prm.max_relative_sigma * rng)
+        return settled & agree & parallax, ~self.alive[rows] | (settled & ~agree)
 
-    def rejected(self, ids: np.ndarray) -> np.ndarray:
-        """Mask of the ids whose landmark failed a check — dropped by the gate, views that do
-        not agree (NIS), or below the water — as opposed to reportable or still converging
-        (too few views or too little parallax so far)."""
-        prm = self.params
+    def classify(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rows (-1: no landmark), reportable, rejected) of the ids (``_verdicts``)."""
         rows = self.lookup(ids)
-        out = np.zeros(len(rows), bool)
+        good = np.zeros(len(rows), bool)
+        bad = np.zeros(len(rows), bool)
         have = rows >= 0
-        r = rows[have]
-        bad = ~self.alive[r]
-        bad |= (self.views[r] >= prm.min_views) & \
-            (self.nis[r] / (2.0 * np.maximum(self.views[r], 1)) > prm.max_mean_nis)
-        if prm.water_down_m is not None:
-            bad |= (self.views[r] >= prm.min_views) & \
-                (self.x[r, 2] > prm.water_down_m - prm.water_margin_m)
-        out[have] = bad
-        return out
+        good[have], bad[have] = self._verdicts(rows[have])
+        return rows, good, bad
 
     def points(self, min_views: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids, positions (N,3), covariances (N,3,3)) of the reportable landmarks
-        (``reportable``); the covariance includes the camera-position floor (see the module
+        (``_verdicts``); the covariance includes the camera-position floor (see the module
         docstring)."""
         sel = np.flatnonzero(self.alive)
-        sel = sel[self.reportable(sel, min_views)]
+        sel = sel[self._verdicts(sel, min_views)[0]]
         return self.ids[sel].copy(), self.x[sel].copy(), self.P[sel] + self.floor[sel]
-
-    def get(self, ids: np.ndarray, min_views: int | None = None
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(mask of ids reportable (``reportable``), positions (N,3), covariances (N,3,3))
-        for given ids, NaN where the mask is False."""
-        rows = self.lookup(ids)
-        ok = rows >= 0
-        ok[ok] = self.reportable(rows[ok], min_views)
-        xyz = np.full((len(rows), 3), np.nan)
-        cov = np.full((len(rows), 3, 3), np.nan)
-        xyz[ok] = self.x[rows[ok]]
-        cov[ok] = self.P[rows[ok]] + self.floor[rows[ok]]
-        return ok, xyz, cov
 
 
 def _skew_batch(v: np.ndarray) -> np.ndarray:

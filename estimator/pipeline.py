@@ -436,9 +436,9 @@ class Fusion:
     def structure(self, refined: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Port-structure points in L, their 1-σ (m), ids. Without ``refined``: the VO points
         (scaled, drift-corrected). With it (and the landmark refinement on): a reportable
-        landmark (``LandmarkMap.reportable``: enough views and parallax, views that agree,
+        landmark (``LandmarkMap.classify``: enough views and parallax, views that agree,
         above the water) gives its refined position, its σ the RMS per axis of its covariance;
-        a rejected one (``LandmarkMap.rejected``: water patterns, reflections, mistracks) is
+        a rejected one (water patterns, reflections, mistracks) is
         left out; one still converging keeps the VO point with the larger of the two σ."""
         ids, pts, sig = [], [], []
         for pid, p in self._frozen.items():
@@ -459,15 +459,14 @@ class Fusion:
         pts_a, sig_a, ids_a = np.array(pts), np.array(sig), np.array(ids, np.int64)
         if refined and self.landmarks is not None:
             lm = self.landmarks
-            ok, xyz, cov = lm.get(ids_a)
-            pts_a[ok] = xyz[ok]
-            sig_a[ok] = np.sqrt(np.trace(cov[ok], axis1=1, axis2=2) / 3.0)
-            # Still converging: the VO point, with the landmark's (larger) σ when it has one.
-            rows = lm.lookup(ids_a)
-            conv = ~ok & (rows >= 0)
-            sig_a[conv] = np.maximum(sig_a[conv], np.sqrt(np.trace(
-                lm.P[rows[conv]] + lm.floor[rows[conv]], axis1=1, axis2=2) / 3.0))
-            keep = ok | ~lm.rejected(ids_a)
+            rows, ok, rejected = lm.classify(ids_a)
+            have = rows >= 0
+            sig_lm = np.sqrt(np.trace(lm.P[rows[have]] + lm.floor[rows[have]],
+                                      axis1=1, axis2=2) / 3.0)
+            pts_a[ok] = lm.x[rows[ok]]
+            # Reportable: the landmark's σ; still converging: the larger of the two.
+            sig_a[have] = np.where(ok[have], sig_lm, np.maximum(sig_a[have], sig_lm))
+            keep = ~rejected
             return pts_a[keep], sig_a[keep], ids_a[keep]
         return pts_a, sig_a, ids_a
 

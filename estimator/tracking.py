@@ -596,9 +596,6 @@ def point_on_ray(points_ned: np.ndarray, sigma_m: np.ndarray | None,
     return c + r * u, P
 
 
-CONVERGED_FRACTION = 0.05  # σ / range of a structure point that has converged
-
-
 def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
                        click_uv: np.ndarray, camera_position_ned: np.ndarray, ray: np.ndarray,
                        focal_px: float, radius_px: float = 12.0, max_radius_px: float = 24.0
@@ -614,9 +611,10 @@ def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: n
     d = np.nan_to_num(d, nan=np.inf)
     c = np.asarray(camera_position_ned, float)
     u = np.asarray(ray, float) / np.linalg.norm(ray)
-    # Converged points (σ within CONVERGED_FRACTION of their range) anchor the click when
-    # there are any near it: a point still converging may be metres off along its ray.
-    converged = sig <= CONVERGED_FRACTION * np.linalg.norm(pts - c, axis=1)
+    # Converged points (σ within the landmarks' reporting fraction of their range) anchor the
+    # click when there are any near it: a point still converging may be metres off along its
+    # ray.
+    converged = sig <= LandmarkParams.max_relative_sigma * np.linalg.norm(pts - c, axis=1)
     for radius in (radius_px, max_radius_px):
         near = np.flatnonzero(d <= radius)
         if not len(near):

@@ -208,8 +208,9 @@ def test_only_trustworthy_landmarks_are_reported(scene):
     # without the water plane, the reflection is reported
     lm.params.water_down_m = None
     assert 2 in lm.points()[0]
-    mask, xyz, _ = lm.get(np.array([0, 4, 99]))
-    assert mask.tolist() == [True, False, False] and np.isnan(xyz[1:]).all()
+    rows, mask, rejected = lm.classify(np.array([0, 4, 99]))
+    assert mask.tolist() == [True, False, False] and rows[2] == -1
+    assert not rejected.any()  # 4 is still converging (two views), 99 unknown
 
 
 def test_fusion_structure_uses_refined_landmarks():

@@ -349,11 +349,12 @@ def test_rendered_blank_gap_starts_new_segment(rendered_run):
         assert angle_deg(rel @ rel_true.T) < 0.3
 
 
-def test_anchor_check_cuts_tracks_on_changing_water():
+def test_patch_check_cuts_tracks_on_changing_water():
     """Front end: the left half is a rigid textured quay panning slowly, the right half water
     made of two wave patterns drifting in opposite directions. Frame-to-frame LK (with its
     forward-backward check) follows blends of the water patterns for a long time; checked
-    against the track's anchor image — a pattern that keeps its appearance — they are cut,
+    against the track's patch a few frames back — a pattern that keeps its appearance — they
+    are cut,
     while the quay's tracks live on."""
     rng = np.random.default_rng(5)
 
@@ -373,8 +374,8 @@ def test_anchor_check_cuts_tracks_on_changing_water():
     from estimator.vo import VoParams
 
     alive = {}
-    for name, age in (("anchored", VoParams().anchor_max_age), ("chained", 1)):
-        vo = VisualOdometry(CAMERA, VoParams(anchor_max_age=age))
+    for name, age in (("patch", VoParams().patch_max_age), ("chained", 1)):
+        vo = VisualOdometry(CAMERA, VoParams(patch_max_age=age))
         vo.process(0.0, frame(0))
         ids0 = vo._tracks.id.copy()
         water0 = np.isin(ids0, vo._tracks.id[vo._tracks.uv[:, 0] > 500])
@@ -383,9 +384,9 @@ def test_anchor_check_cuts_tracks_on_changing_water():
         live = np.isin(ids0, vo._tracks.id)
         alive[name] = (int((live & ~water0).sum()), int((live & water0).sum()),
                        int((~water0).sum()), int(water0.sum()))
-    quay_a, water_a, n_quay, n_water = alive["anchored"]
+    quay_a, water_a, n_quay, n_water = alive["patch"]
     quay_c, water_c, _, _ = alive["chained"]
     assert n_quay > 50 and n_water > 50
     assert quay_a > 0.8 * n_quay  # the rigid texture keeps its tracks
     assert water_c > 0.2 * n_water  # chained LK keeps following the water ...
-    assert water_a < 0.25 * water_c  # ... the anchor check does not
+    assert water_a < 0.25 * water_c  # ... the patch check does not

@@ -699,8 +699,10 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
     def keep(**kw: Any) -> Any:
         return FusionOptions(keep_after_s=init_s, **lean, **kw)
 
-    water = {"body_origin_height_m": rec.hull.body_origin_height_m}  # (reflections dropped)
-    main = rp.fuse("INS+VO+CPP", FusionOptions(keep_after_s=init_s, **water), structure=True)
+    # The full pipeline; the water plane lets the landmark refinement drop reflections.
+    full = FusionOptions(keep_after_s=init_s,
+                         body_origin_height_m=rec.hull.body_origin_height_m)
+    main = rp.fuse("INS+VO+CPP", full, structure=True)
     if main.origin_time is None:
         raise ValueError(f"{rec.manifest.name}: the fusion never started (no GNSS compass fix "
                          "and no course over ground)")
@@ -791,7 +793,7 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
         clicks = [c for c in default_clicks(rec, times_s=times) if c.frame < len(rp.vo)]
         show("tracking and landmark evaluation")
         run = run_fusion(rec, vo_outputs=rp.vo, snapshot_frames=[c.frame for c in clicks],
-                         options=FusionOptions(keep_after_s=init_s, **water), end_s=end_s)
+                         options=full, end_s=end_s)
         report["tracking"] = evaluate_tracking(rec, run, clicks, end_s=end_s)
         report["landmarks"] = evaluate_landmarks(rec, run)
     fusion_s = main.wall_s

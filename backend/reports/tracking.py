@@ -111,7 +111,6 @@ class FusionRun:
     structure_raw: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # final, raw
     view_history: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     last_views: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
-    landmark_views: tuple[np.ndarray, np.ndarray] | None = None  # (ids, views) at the end
     timing_ms: dict[str, float] = field(default_factory=dict)
     wall_s: float = 0.0
     vo_ms: float | None = None
@@ -211,9 +210,6 @@ def run_fusion(rec: Any, vo_outputs: Sequence[Any] | None = None,
         if parts:
             run.view_history[c] = (np.concatenate([p[0] for p in parts]),
                                    np.concatenate([p[1] for p in parts]))
-    if f.landmarks is not None:
-        lm = f.landmarks
-        run.landmark_views = (lm.ids[lm.alive].copy(), lm.views[lm.alive].copy())
     run.timing_ms = {k: float(v) for k, v in f.timing().items()}
     if progress is not None:
         progress(f"fusion for the tracking/landmark evaluation: {run.wall_s:.1f} s")
