@@ -1,8 +1,9 @@
 """Visual odometry block (thesis fig. 17 "VO演算部", SPEC section 4 "VO block").
 
 Monocular, causal, frame by frame: ORB corners are detected at keyframes and followed by
-pyramidal Lucas–Kanade with a forward–backward check and a check against the track's patch
-a few frames back (which cuts tracks on the changing water); the first map comes from the essential
+pyramidal Lucas–Kanade with a forward–backward check, each result then aligned on the track's
+template under an affine warp (no drift as the scene zooms; cuts tracks on the changing
+water, ``align_affine``); the first map comes from the essential
 matrix (5-point + RANSAC) between a reference frame and a later frame with enough parallax,
 later frames are located by PnP + RANSAC on the map points, new points are triangulated at
 keyframes and a local bundle adjustment refines the last keyframes and their points. RANSAC
@@ -64,8 +65,13 @@ class VoParams:
     lk_window: int = 21  # LK window side (px)
     lk_levels: int = 3  # LK pyramid levels above the full image
     fb_threshold_px: float = 0.7  # forward–backward LK disagreement that cuts a track
-    patch_max_age: int = 20  # frames a track is checked against the same patch image (1: off)
-    patch_max_shift_px: float = 4.0  # the patch check moving a track farther cuts it
+    template_check: bool = True  # align every track on its template (off: chained LK only)
+    template_half_px: int = 10  # template side 2·half+1 (px), as the LK window
+    template_iterations: int = 3  # Gauss–Newton steps of the affine alignment
+    template_min_ncc: float = 0.9  # correlation with the template below this cuts the track
+    template_max_shift_px: float = 2.0  # alignment moving the LK result farther cuts the track
+    template_max_stretch: float = 1.3  # warp stretching beyond this (or 1/this): new template
+    template_blur_px: float = 1.0  # Gaussian σ applied before sampling (aliasing, convergence)
     min_tracked: int = 30  # fewer PnP inliers than this: tracking lost
     init_min_parallax_px: float = 6.0  # median track displacement before E is tried
     init_min_angle_deg: float = 0.7  # median triangulation angle the first map must reach
@@ -353,6 +359,79 @@ def _same_pose_direction(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, 
                 np.degrees(np.arccos(np.clip(cos, -1, 1))) < 10 * p.init_agreement_deg)
 
 
+# ------------------------------------------------------------------- template alignment
+
+
+def sample_patches(image: np.ndarray, centres: np.ndarray, warps: np.ndarray, half: int
+                   ) -> np.ndarray:
+    """Patches (N, 2·half+1, 2·half+1) of ``image`` (bilinear): pixel (i, j) of patch n is the
+    image at ``centres[n] + warps[n] @ (j - half, i - half)``."""
+    side = 2 * half + 1
+    x, y = np.meshgrid(np.arange(-half, half + 1, dtype=np.float32),
+                       np.arange(-half, half + 1, dtype=np.float32))
+    w = warps.reshape(-1, 4).astype(np.float32)[:, :, None, None]
+    c = centres.astype(np.float32)[:, :, None, None]
+    map_x = c[:, 0] + w[:, 0] * x + w[:, 1] * y
+    map_y = c[:, 1] + w[:, 2] * x + w[:, 3] * y
+    out = cv2.remap(image, map_x.reshape(-1, side), map_y.reshape(-1, side), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(len(centres), side, side, *image.shape[2:])
+
+
+def normalised(patches: np.ndarray) -> np.ndarray:
+    """Patches with zero mean and unit σ each (gain and offset of the grey values removed)."""
+    mean = patches.mean(axis=(1, 2), keepdims=True)
+    std = np.maximum(patches.std(axis=(1, 2), keepdims=True), 1.0)
+    return ((patches - mean) / std).astype(np.float32)
+
+
+def align_affine(image_and_gradients: np.ndarray, templates: np.ndarray, centres: np.ndarray,
+                 warps: np.ndarray, iterations: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss–Newton alignment of normalised ``templates`` (N, S, S) on an image under an affine
+    warp (centre and 2x2 ``warps``, as in ``sample_patches``), started from the given ones.
+    ``image_and_gradients`` stacks the image and its x and y gradients (H, W, 3), float32.
+    Returns the centres, the warps and the normalised correlation at the end."""
+    n, side = len(templates), templates.shape[1]
+    half = side // 2
+    x, y = (c.ravel() for c in np.meshgrid(np.arange(-half, half + 1.0),
+                                           np.arange(-half, half + 1.0)))
+    # The parameters (centre x, y, warp 00, 01, 10, 11) each have a Jacobian of one image
+    # gradient (x or y) times one monomial of the template pixel (1, x or y): the normal
+    # matrix is a few weighted sums of gradient products, one matrix product for all tracks.
+    grad_of = np.array([0, 1, 0, 0, 1, 1])
+    monomial_of = np.array([0, 0, 1, 2, 1, 2])
+    monomials = np.stack([np.ones_like(x), x, y]).T.astype(np.float32)  # (P, 3)
+    products = np.column_stack([monomials[:, i] * monomials[:, j]
+                                for i in range(3) for j in range(3)])  # (P, 9)
+    grad_pair = grad_of[:, None] + grad_of[None, :]  # 0: gx², 1: gx·gy, 2: gy²
+    product_of = 3 * monomial_of[:, None] + monomial_of[None, :]
+    # Levenberg damping, and a small pull of the warp to its start (a patch with one dominant
+    # edge leaves part of it free).
+    floor = np.diag([1e-3, 1e-3, 1.0, 1.0, 1.0, 1.0])
+    centres, warps = centres.copy(), warps.copy()
+    target = templates.reshape(n, -1)
+    ncc = np.zeros(n)
+    for _ in range(iterations):
+        sampled = sample_patches(image_and_gradients, centres, warps, half).reshape(n, -1, 3)
+        patch = sampled[..., 0]
+        mean = patch.mean(axis=1, keepdims=True)
+        std = np.maximum(patch.std(axis=1, keepdims=True), np.float32(1.0))
+        residual = (patch - mean) / std - target
+        gx, gy = sampled[..., 1] / std, sampled[..., 2] / std
+        sums = (np.stack([gx * gx, gx * gy, gy * gy], axis=1).reshape(3 * n, -1)
+                @ products).reshape(n, 3, 9)
+        H = sums[:, grad_pair, product_of].astype(float)
+        H += 0.1 * H * np.eye(6) + floor
+        g = (np.stack([gx * residual, gy * residual], axis=1).reshape(2 * n, -1)
+             @ monomials).reshape(n, 2, 3)[:, grad_of, monomial_of]
+        step = -np.linalg.solve(H, g[..., None].astype(float))[..., 0]
+        centres += step[:, :2]
+        warps += step[:, 2:].reshape(n, 2, 2)
+        ncc = 1.0 - 0.5 * np.mean(residual ** 2, axis=1)
+    return centres, warps, ncc
+
+
 # ------------------------------------------------------------------------------ state
 
 
@@ -366,23 +445,24 @@ class _Tracks:
     anchor_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # first keyframe
     anchor_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # xy at anchor
     kf_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # xy at last keyframe
-    # The track's patch for the front end's check: the number of the frame whose image holds
-    # it (-1: none yet, or an external front end) and the track's pixel there.
-    patch_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    patch_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))
+    # The track's template (grey values normalised to zero mean and unit σ, sampled around
+    # the track when it got it) and the affine warp from template to image pixels now
+    # (NaN: no template yet, or an external front end).
+    template: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0), np.float32))
+    warp: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
 
     def __len__(self) -> int:
         return len(self.id)
 
     def _columns(self) -> tuple[np.ndarray, ...]:
         return (self.id, self.uv, self.xy, self.anchor_kf, self.anchor_xy, self.kf_xy,
-                self.patch_frame, self.patch_uv)
+                self.template, self.warp)
 
     def select(self, index: np.ndarray) -> _Tracks:
         return _Tracks(*(a[index] for a in self._columns()))
 
     def extend(self, other: _Tracks) -> _Tracks:
-        return _Tracks(*(np.concatenate([a, b]) for a, b in zip(
+        return _Tracks(*(np.concatenate([a, b]) if len(a) else b.copy() for a, b in zip(
             self._columns(), other._columns(), strict=True)))
 
 
@@ -463,7 +543,6 @@ class VisualOdometry:
         self._segment = 0
         self._next_id = 0
         self._prev_gray: np.ndarray | None = None
-        self._patch_images: dict[int, np.ndarray] = {}  # frame number → grey image in use
         self._elapsed = dict.fromkeys((*STAGES, "total"), 0.0)
         self._n_frames = self._n_keyframes = self._n_ba = 0
         self._new_world()
@@ -474,16 +553,18 @@ class VisualOdometry:
         """Track the frame taken at ``time`` and return the VO output for it."""
         t_start = _time.perf_counter()
         gray = image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
+        blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), self.params.template_blur_px)
         if len(self._tracks) and self._prev_gray is not None:
             uv, ok = self._track_lk(self._prev_gray, gray)
-            uv, ok = self._check_on_patches(gray, uv, ok)
+            if self.params.template_check:
+                uv, ok = self._align_on_templates(blurred, uv, ok)
             self._set_tracks(np.flatnonzero(ok), uv[ok])
         else:
             self._set_tracks(np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
         self._prev_gray = gray
         self._elapsed["track"] += _time.perf_counter() - t_start
         out = self._step(time, lambda n: self._detect(gray, n))
-        self._renew_patches(gray)
+        self._renew_templates(blurred)
         self._elapsed["total"] += _time.perf_counter() - t_start
         return out
 
@@ -536,44 +617,47 @@ class VisualOdometry:
         ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.params.fb_threshold_px) & inside
         return uv, ok
 
-    def _check_on_patches(self, gray: np.ndarray, uv: np.ndarray, ok: np.ndarray
-                          ) -> tuple[np.ndarray, np.ndarray]:
-        """Frame-to-frame LK with its forward–backward check follows anything whose look
-        changes little between two frames — also the blend of wave patterns drifting on the
-        water. So each LK result is checked (and refined) by LK from the track's patch image,
-        up to ``patch_max_age`` frames back, started at the chained guess: a corner of the
-        port still looks like its patch; a water pattern does not, and its track is cut."""
-        tr = self._tracks
-        uv = uv.copy()
-        ok = ok.copy()
-        for f in np.unique(tr.patch_frame[ok]):
-            image = self._patch_images.get(int(f))
-            if image is None:
-                continue
-            rows = np.flatnonzero(ok & (tr.patch_frame == f))
-            p1, st, _ = cv2.calcOpticalFlowPyrLK(
-                image, gray, tr.patch_uv[rows].reshape(-1, 1, 2),
-                uv[rows].reshape(-1, 1, 2).astype(np.float32), winSize=self._lk["winSize"],
-                maxLevel=0, criteria=self._lk["criteria"], flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-            p1 = p1.reshape(-1, 2)
-            good = (st.ravel() == 1) & (np.linalg.norm(p1 - uv[rows], axis=1)
-                                        <= self.params.patch_max_shift_px)
-            uv[rows[good]] = p1[good]
-            ok[rows[~good]] = False
+    def _align_on_templates(self, image: np.ndarray, uv: np.ndarray, ok: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray]:
+        """Chained frame-to-frame LK drifts: each step's small error adds up, and a
+        translation-only window slides across the texture as the scene zooms (the quay
+        approaching), about 1 px per 100 frames — metres of depth for a distant point. So each
+        LK result is refined by aligning the track's own template under an affine warp (scale,
+        shear, rotation followed from frame to frame). This also cuts tracks whose look changed
+        (the drifting wave patterns of the water, occlusions), which LK with its
+        forward–backward check follows."""
+        p, tr = self.params, self._tracks
+        rows = np.flatnonzero(ok & np.isfinite(tr.warp[:, 0, 0]))
+        if len(rows) == 0:
+            return uv, ok
+        uv, ok = uv.copy(), ok.copy()
+        stack = np.dstack([image, cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1 / 32),
+                           cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1 / 32)])
+        centre, warp, ncc = align_affine(stack, tr.template[rows], uv[rows].astype(float),
+                                         tr.warp[rows], p.template_iterations)
+        stretch = np.linalg.svd(warp, compute_uv=False)
+        good = ((ncc >= p.template_min_ncc)
+                & (np.linalg.norm(centre - uv[rows], axis=1) <= p.template_max_shift_px)
+                & (stretch[:, 0] < 2.0) & (stretch[:, 1] > 0.5))
+        uv[rows[good]] = centre[good]
+        tr.warp[rows[good]] = warp[good]
+        ok[rows[~good]] = False
         return uv, ok
 
-    def _renew_patches(self, gray: np.ndarray) -> None:
-        """New tracks and those whose patch is ``patch_max_age`` frames old take their patch
-        from this image; images no track refers to any more are forgotten."""
-        tr, now = self._tracks, self._n_frames
-        if len(tr):
-            stale = (tr.patch_frame < 0) | (now - tr.patch_frame >= self.params.patch_max_age)
-            if stale.any():
-                tr.patch_frame[stale] = now
-                tr.patch_uv[stale] = tr.uv[stale]
-                self._patch_images[now] = gray
-        used = set(np.unique(tr.patch_frame).tolist())
-        self._patch_images = {k: v for k, v in self._patch_images.items() if k in used}
+    def _renew_templates(self, image: np.ndarray) -> None:
+        """New tracks, and those whose warp stretched the template beyond
+        ``template_max_stretch``, take a template from this image (blurred)."""
+        tr, p = self._tracks, self.params
+        if not len(tr) or not p.template_check:
+            return
+        stretch = np.linalg.svd(np.nan_to_num(tr.warp, nan=0.0), compute_uv=False)
+        renew = ((stretch[:, 0] > p.template_max_stretch)
+                 | (stretch[:, 1] < 1.0 / p.template_max_stretch))
+        if renew.any():
+            eye = np.broadcast_to(np.eye(2), (int(renew.sum()), 2, 2))
+            tr.template[renew] = normalised(sample_patches(image, tr.uv[renew].astype(float), eye,
+                                                           p.template_half_px))
+            tr.warp[renew] = eye
 
     def _detect(self, gray: np.ndarray, n_wanted: int) -> tuple[np.ndarray, np.ndarray]:
         """New ORB corners, the strongest per cell of ``min_feature_distance_px``, none in a cell
@@ -615,10 +699,11 @@ class VisualOdometry:
         if len(ids) == 0:
             return
         xy = self._undistort(uv)
+        side = 2 * self.params.template_half_px + 1
         self._tracks = self._tracks.extend(_Tracks(
             np.asarray(ids, np.int64), np.asarray(uv, np.float32).reshape(-1, 2), xy,
             np.full(len(ids), anchor_kf, np.int64), xy.copy(), xy.copy(),
-            np.full(len(ids), -1, np.int64), np.asarray(uv, np.float32).reshape(-1, 2).copy()))
+            np.zeros((len(ids), side, side), np.float32), np.full((len(ids), 2, 2), np.nan)))
 
     # ------------------------------------------------------------------------- back end
 

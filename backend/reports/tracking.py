@@ -109,6 +109,8 @@ class FusionRun:
         default_factory=dict)  # frame → Fusion.structure() after that frame
     structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # final, refined
     structure_raw: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # final, raw
+    # ids of the final structure whose landmark has converged (reportable, not converging)
+    converged_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     view_history: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     last_views: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
     timing_ms: dict[str, float] = field(default_factory=dict)
@@ -206,6 +208,9 @@ def run_fusion(rec: Any, vo_outputs: Sequence[Any] | None = None,
     if f.ekf is not None:
         run.structure = f.structure()
         run.structure_raw = f.structure(refined=False)
+        if f.landmarks is not None:
+            ids = run.structure[2]
+            run.converged_ids = ids[f.landmarks.classify(ids)[1]]
     for c, parts in history.items():
         if parts:
             run.view_history[c] = (np.concatenate([p[0] for p in parts]),
@@ -656,10 +661,15 @@ def evaluate_landmarks(rec: Any, run: FusionRun,
         out["depth_truth"] = None
         out["reason"] = "no rendered truth (not a simulated recording whose scene can be rebuilt)"
         return out
+    # The converged landmarks alone (the others are shown as converging, with their σ).
+    conv = np.isin(ids, run.converged_ids)
+    conv_raw = np.isin(raw_ids, run.converged_ids)
     out["depth_truth"] = {
         "raw": _depth_scores(lt, truth, raw_ids, raw, cam_end),
         "refined": _depth_scores(lt, truth, ids, pts, cam_end),
         "raw_same_points": _depth_scores(lt, truth, raw_same_ids, raw_same, cam_end),
+        "raw_converged": _depth_scores(lt, truth, raw_ids[conv_raw], raw[conv_raw], cam_end),
+        "refined_converged": _depth_scores(lt, truth, ids[conv], pts[conv], cam_end),
         "truth_points": len(lt),
     }
     curve = []
@@ -795,14 +805,19 @@ def format_tracking_report(tracking: dict[str, Any], landmarks: dict[str, Any] |
         if dt:
             for name, label in (("raw", "all raw VO points"),
                                 ("raw_same_points", "raw, reported ones"),
-                                ("refined", "refined, reported")):
+                                ("refined", "refined, reported"),
+                                ("raw_converged", "raw, converged ones"),
+                                ("refined_converged", "refined, converged")):
                 if name not in dt:
                     continue
                 w = dt[name]["within_30m"]
+                b = dt[name]["bands_last_view_depth"][1]  # last seen at 10–30 m
                 lines.append(f"  {label:20s} within 30 m: depth error median "
                              f"{f(w['depth_median_m'], '.3f')} m p90 "
                              f"{f(w['depth_p90_m'], '.2f')} m, 3-D error median "
-                             f"{f(w['xyz_median_m'], '.3f')} m ({w['points']} points)")
+                             f"{f(w['xyz_median_m'], '.3f')} m ({w['points']} points); "
+                             f"last seen at 10–30 m: {f(b['xyz_median_m'], '.3f')} m "
+                             f"({b['points']})")
         for row in landmarks.get("error_vs_views_same_landmarks", []):
             lines.append(f"  after {row['views']:4d} views: depth error median "
                          f"{row['depth_median_m']:.3f} m, {100 * row['relative_depth_median']:.1f}"
