@@ -31,6 +31,12 @@ would let ``P_l`` shrink below what the camera positions themselves are known to
 therefore reports ``P_l`` plus the camera-position covariance of the landmark's last view (a
 floor).
 
+The decoupled EKFs cannot see that the fused attitude's error is common to all landmarks of a
+view and wanders over seconds (the GNSS compass' heading corrections). ``ViewWindow`` restores
+that coupling over the last ~45 s: the views' attitudes and the landmarks are solved jointly
+(camera centres held at the fused positions). Where it has a landmark, its position is the
+one reported (``best``); the EKF still decides whether a landmark is reportable.
+
 Reporting (``classify``, ``points``): a landmark is reported once it has the views, the
 parallax (σ along its last ray within a fraction of the range) and views that agree (mean NIS),
 and lies above the water plane when that is known; one that fails the agreement or the water
@@ -43,7 +49,8 @@ millisecond).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2
@@ -78,6 +85,23 @@ class LandmarkParams:
     # unknown) by at least this much: reflections and water patterns lie on or below it.
     water_down_m: float | None = None
     water_margin_m: float = 0.05
+    # Joint refinement over the last views (``ViewWindow``; None: off). Reported positions
+    # of reportable landmarks come from it once it has them.
+    joint: JointParams | None = field(default_factory=lambda: JointParams())
+
+
+@dataclass
+class JointParams:
+    """The sliding window of ``ViewWindow``."""
+
+    span_s: float = 45.0  # views kept (a landmark's life near the quay is 10–40 s)
+    view_interval_s: float = 0.5  # a view kept at most this often
+    solve_interval_s: float = 1.0  # a solve at most this often
+    pixel_sigma_px: float = 1.0  # tracked corner noise (the template-aligned front end)
+    iterations: int = 3  # alternations (points | rotations) per solve, warm-started
+    min_views: int = 5  # views a landmark needs in the window
+    huber_px: float = 3.0  # residuals beyond this are down-weighted in the rotations
+    min_view_landmarks: int = 20  # a view with fewer keeps its fused attitude
 
 
 @dataclass
@@ -131,6 +155,193 @@ def ray_prior(xyz: np.ndarray, camera_position_ned: np.ndarray, focal_px: float,
     return v_lat[:, None, None] * np.eye(3) + (v_ray - v_lat)[:, None, None] * uu
 
 
+@dataclass
+class _View:
+    time: float
+    C_level_to_camera: np.ndarray  # the fused attitude (the prior)
+    C_solved: np.ndarray  # the joint solution's so far (the next solve starts from it)
+    attitude_info: np.ndarray  # inverse covariance of the fused attitude, camera axes
+    camera_position_ned: np.ndarray
+    ids: np.ndarray
+    xy: np.ndarray  # undistorted normalised
+
+
+class ViewWindow:
+    """Joint refinement of the last views' attitudes and the landmarks they see.
+
+    Seed 000 estimates the sensor pose and the landmarks in one filter, so the landmarks
+    correct the pose as much as the pose places them. The per-landmark EKFs of ``LandmarkMap``
+    drop that coupling, and they meet a hard limit. The fused heading wanders by a few
+    hundredths of a degree over seconds, since the GNSS compass corrects it once per epoch.
+    Between two views of a landmark this is a fake parallax, which puts quay points 20–30 m
+    away off by decimetres. The window restores the coupling over its span:
+
+    - the camera centres are held at the fused positions (millimetres);
+    - each view's attitude may move about its fused value (prior σ ``attitude_sigma_deg``);
+    - the landmarks are free.
+
+    Many landmarks seen from each view then fix the views' relative attitudes. The fused
+    priors hold their common rotation, so nothing drifts from window to window.
+
+    The solve alternates two steps, each small and vectorised:
+    - each landmark is triangulated from its rays (least squares on the ray distances,
+      weighted by 1/range², i.e. angular errors);
+    - each view's rotation is solved from its landmarks and its prior (Gauss–Newton on the
+      reprojection, Huber-weighted)."""
+
+    def __init__(self, focal_px: float, params: JointParams) -> None:
+        self.focal = float(focal_px)
+        self.params = params
+        self.views: list[_View] = []
+        self._last_solve = -math.inf
+
+    def add(self, t: float, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+            attitude_cov: np.ndarray | None, ids: np.ndarray, xy: np.ndarray) -> None:
+        """Keep this view if the last kept one is ``view_interval_s`` old; forget views older
+        than ``span_s``. ``attitude_cov``: the fused attitude's covariance (small angles in L;
+        None: exact), the prior of the view's rotation."""
+        p = self.params
+        if self.views and t - self.views[-1].time < p.view_interval_s:
+            return
+        if self.views and t < self.views[-1].time:
+            self.views = []  # time went back (a new replay): start again
+        C = np.asarray(C_level_to_camera, float)
+        if attitude_cov is None:
+            info = np.eye(3) * 1e16  # an exact attitude stays
+        else:
+            info = np.linalg.inv(C @ np.asarray(attitude_cov, float) @ C.T
+                                 + np.eye(3) * 1e-16)
+        self.views.append(_View(float(t), C.copy(), C.copy(), info,
+                                np.asarray(camera_position_ned, float).copy(),
+                                np.asarray(ids, np.int64).copy(),
+                                np.asarray(xy, float).reshape(-1, 2).copy()))
+        self.views = [v for v in self.views if t - v.time <= p.span_s]
+
+    def due(self, t: float) -> bool:
+        return t - self._last_solve >= self.params.solve_interval_s and len(self.views) >= 3
+
+    def solve(self, t: float, priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, positions (N,3), covariances (N,3,3), views) of the landmarks with
+        ``min_views`` views in the window, from the joint solution. ``priors(ids)``: each
+        landmark's prior (position, inverse covariance; zero where none) — the same the
+        landmark EKF started from, so a point with little parallax in the window stays near
+        it."""
+        p = self.params
+        self._last_solve = float(t)
+        empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)),
+                 np.zeros(0, np.int64))
+        if len(self.views) < 3:
+            return empty
+        view_of = np.concatenate([np.full(len(v.ids), k) for k, v in enumerate(self.views)])
+        ids_all = np.concatenate([v.ids for v in self.views])
+        xy = np.concatenate([v.xy for v in self.views])
+        ids, point_of, counts = np.unique(ids_all, return_inverse=True, return_counts=True)
+        keep = counts[point_of] >= p.min_views
+        if not keep.any():
+            return empty
+        ids, point_of = np.unique(ids_all[keep], return_inverse=True)
+        view_of, xy = view_of[keep], xy[keep]
+        centre = np.array([v.camera_position_ned for v in self.views])
+        prior = np.array([v.C_level_to_camera for v in self.views])
+        prior_info = np.array([v.attitude_info for v in self.views])
+        by_point = _Groups(point_of, len(ids))
+        by_view = _Groups(view_of, len(self.views))
+        # Warm start: the alternation converges slowly along the coupled directions (a
+        # rotation of the views against a shift of the points), each solve goes on from the
+        # last one's rotations.
+        C = np.array([v.C_solved for v in self.views])
+        sigma = p.pixel_sigma_px / self.focal
+        x_prior, info_prior = priors(ids)
+        X = x_prior
+        H = np.zeros((len(C), 3, 3))
+        # A view's rotation is only as good as the landmarks it sees.
+        few = np.bincount(view_of, minlength=len(C)) < p.min_view_landmarks
+        for _ in range(p.iterations):
+            X, _A = _triangulate_rays(C, centre, view_of, by_point, xy, X, 1.0 / sigma**2,
+                                      x_prior, info_prior)
+            C, H = _solve_rotations(C, prior, prior_info, centre, X, view_of, point_of,
+                                    by_view, xy, sigma, self.focal, p.huber_px)
+            C[few] = prior[few]
+            H[few] = prior_info[few]
+        for v, c in zip(self.views, C, strict=True):
+            v.C_solved = c
+        # Each ray's angular variance: the pixel noise plus what is left of its view's
+        # rotation uncertainty (small with many landmarks, the fused one with few).
+        rotation_var = np.trace(np.linalg.inv(H), axis1=1, axis2=2) / 3.0
+        X, A = _triangulate_rays(C, centre, view_of, by_point, xy, X,
+                                 1.0 / (sigma**2 + rotation_var[view_of]), x_prior, info_prior)
+        cov = np.linalg.inv(A + 1e-9 * np.eye(3))
+        return ids, X, cov, np.bincount(point_of, minlength=len(ids))
+
+
+class _Groups:
+    """Sums of per-observation values by group (landmark or view), via one sort."""
+
+    def __init__(self, group: np.ndarray, n: int) -> None:
+        self.order = np.argsort(group, kind="stable")
+        counts = np.bincount(group, minlength=n)
+        self.starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        self.empty = counts == 0
+
+    def sum(self, values: np.ndarray) -> np.ndarray:
+        out = np.add.reduceat(values[self.order], self.starts, axis=0)
+        out[self.empty] = 0.0
+        return out
+
+
+def _triangulate_rays(C: np.ndarray, centre: np.ndarray, view_of: np.ndarray,
+                      by_point: _Groups, xy: np.ndarray, X: np.ndarray,
+                      ray_info: np.ndarray | float, x_prior: np.ndarray,
+                      info_prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points from their rays and their priors (``x_prior``, inverse covariances
+    ``info_prior``): least squares on the ray distances, each ray weighted by ``ray_info``
+    (its inverse angular variance) / range² at the estimate ``X`` (the distance across a ray
+    is the angle times the range). Returns the points and their inverse covariances
+    Σ w (I − u uᵀ) + prior."""
+    rays = np.einsum("nji,nj->ni", C[view_of], np.column_stack([xy, np.ones(len(xy))]))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    M = np.eye(3) - rays[:, :, None] * rays[:, None, :]
+    o = centre[view_of]
+    Mo = np.einsum("nij,nj->ni", M, o)
+    point_of = np.empty(len(xy), np.int64)
+    point_of[by_point.order] = np.repeat(np.arange(len(by_point.starts)),
+                                         np.diff(np.append(by_point.starts, len(xy))))
+    w = ray_info / np.maximum(np.linalg.norm(X[point_of] - o, axis=1), 1.0) ** 2
+    A = by_point.sum(w[:, None, None] * M) + info_prior
+    b = by_point.sum(w[:, None] * Mo) + (info_prior @ x_prior[..., None])[..., 0]
+    return np.linalg.solve(A + 1e-9 * np.eye(3), b[..., None])[..., 0], A
+
+
+def _solve_rotations(C: np.ndarray, prior: np.ndarray, prior_info: np.ndarray,
+                     centre: np.ndarray, X: np.ndarray, view_of: np.ndarray,
+                     point_of: np.ndarray, by_view: _Groups, xy: np.ndarray, sigma: float,
+                     focal: float, huber_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """One Gauss–Newton step of every view's rotation (``C' = exp([φ×]) C``, φ in camera
+    axes, small) on the reprojection of its landmarks and its prior (the fused attitude,
+    inverse covariance ``prior_info``). Returns the rotations and their normal matrices."""
+    xc = np.einsum("nij,nj->ni", C[view_of], X[point_of] - centre[view_of])
+    z = np.maximum(xc[:, 2], 1e-6)
+    h = xc[:, :2] / z[:, None]
+    r = (xy - h) / sigma
+    Jc = np.zeros((len(xy), 2, 3))
+    Jc[:, 0, 0] = Jc[:, 1, 1] = 1.0 / z
+    Jc[:, :, 2] = -h / z[:, None]
+    J = -Jc @ _skew_batch(xc) / sigma
+    w = 1.0 / np.maximum(1.0, np.linalg.norm(r, axis=1) * sigma * focal / huber_px)
+    w[xc[:, 2] <= 0.3] = 0.0
+    H = by_view.sum(w[:, None, None] * np.einsum("nki,nkj->nij", J, J))
+    g = by_view.sum(w[:, None] * np.einsum("nki,nk->ni", J, r))
+    # The prior pulls φ towards the (small) rotation from C to its fused value.
+    D = prior @ C.transpose(0, 2, 1)
+    to_prior = 0.5 * np.stack([D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0],
+                               D[:, 1, 0] - D[:, 0, 1]], axis=1)
+    H += prior_info
+    g += (prior_info @ to_prior[..., None])[..., 0]
+    S = _skew_batch(np.linalg.solve(H, g[..., None])[..., 0])
+    return (np.eye(3) + S + 0.5 * S @ S) @ C, H  # exp([φ×]) to 2nd order (φ ≲ 1e-3)
+
+
 class LandmarkMap:
     """The landmark EKFs of the port structure, kept by the VO's stable point ids."""
 
@@ -148,6 +359,13 @@ class LandmarkMap:
         self.floor = np.zeros((0, 3, 3))  # camera-position covariance of the last view
         self.last_camera = np.zeros((0, 3))  # camera centre of the last accepted view
         self.nis = np.zeros(0)  # sum of the normalised innovations² of the accepted views
+        # The joint refinement's estimate (NaN until the window has solved for it).
+        self.x_joint = np.zeros((0, 3))
+        self.P_joint = np.zeros((0, 3, 3))
+        self.x_seed = np.zeros((0, 3))  # the prior each landmark started from
+        self.info_seed = np.zeros((0, 3, 3))
+        self.window = None if self.params.joint is None else ViewWindow(self.focal,
+                                                                        self.params.joint)
         self._sorted = np.zeros(0, np.int64)  # ids sorted, and their rows, for look-ups
         self._sorted_rows = np.zeros(0, np.int64)
         self.stats = {"updated": 0, "gated": 0, "dropped": 0, "seeded": 0}
@@ -200,6 +418,7 @@ class LandmarkMap:
         new = ok & (rows < 0)
         r = rows[revive]
         self.x[r], self.P[r] = xyz[revive], cov[revive]
+        self.x_seed[r], self.info_seed[r] = xyz[revive], np.linalg.inv(cov[revive])
         self.views[r] = 0
         self.strikes[r] = 0
         self.alive[r] = True
@@ -207,11 +426,14 @@ class LandmarkMap:
         self.floor[r] = 0.0
         self.last_camera[r] = np.nan
         self.nis[r] = 0.0
+        self.x_joint[r] = np.nan
         n_new = int(new.sum())
         if n_new:
             self.ids = np.concatenate([self.ids, ids[new]])
             self.x = np.concatenate([self.x, xyz[new]])
             self.P = np.concatenate([self.P, cov[new]])
+            self.x_seed = np.concatenate([self.x_seed, xyz[new]])
+            self.info_seed = np.concatenate([self.info_seed, np.linalg.inv(cov[new])])
             self.views = np.concatenate([self.views, np.zeros(n_new, np.int64)])
             self.strikes = np.concatenate([self.strikes, np.zeros(n_new, np.int64)])
             self.alive = np.concatenate([self.alive, np.ones(n_new, bool)])
@@ -219,6 +441,8 @@ class LandmarkMap:
             self.floor = np.concatenate([self.floor, np.zeros((n_new, 3, 3))])
             self.last_camera = np.concatenate([self.last_camera, np.full((n_new, 3), np.nan)])
             self.nis = np.concatenate([self.nis, np.zeros(n_new)])
+            self.x_joint = np.concatenate([self.x_joint, np.full((n_new, 3), np.nan)])
+            self.P_joint = np.concatenate([self.P_joint, np.zeros((n_new, 3, 3))])
             order = np.argsort(self.ids, kind="stable")
             self._sorted, self._sorted_rows = self.ids[order], order.astype(np.int64)
         n = int(revive.sum()) + n_new
@@ -322,7 +546,37 @@ class LandmarkMap:
         self.stats["updated"] += out.updated
         self.stats["gated"] += out.gated
         self.stats["dropped"] += out.dropped
+        if self.window is not None:
+            live = self.alive[rows]
+            att = None if pose_cov is None else np.asarray(pose_cov, float)[3:, 3:]
+            self.window.add(t, C, p, att, self.ids[rows[live]], z_meas[live])
+            if self.window.due(t):
+                j_ids, X, P, _views = self.window.solve(t, self._seed_prior)
+                j_rows = self.lookup(j_ids)
+                have = j_rows >= 0
+                self.x_joint[j_rows[have]] = X[have]
+                self.P_joint[j_rows[have]] = P[have]
         return out
+
+    def _seed_prior(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The seed prior of landmarks ``ids`` (ids without one: the current EKF estimate as a
+        start, no information)."""
+        rows = self.lookup(ids)
+        have = rows >= 0
+        x = np.zeros((len(ids), 3))
+        info = np.zeros((len(ids), 3, 3))
+        x[have], info[have] = self.x_seed[rows[have]], self.info_seed[rows[have]]
+        return x, info
+
+    def best(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and covariances of landmark rows: the joint refinement's where it has
+        one, else the landmark EKF's (its covariance with the camera-position floor)."""
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        x, P = self.x[rows].copy(), self.P[rows] + self.floor[rows]
+        joint = np.isfinite(self.x_joint[rows]).all(axis=1)
+        x[joint] = self.x_joint[rows[joint]]
+        P[joint] = self.P_joint[rows[joint]] + self.floor[rows[joint]]
+        return x, P
 
     # ------------------------------------------------------------------------ output
 
@@ -365,7 +619,7 @@ class LandmarkMap:
         docstring)."""
         sel = np.flatnonzero(self.alive)
         sel = sel[self._verdicts(sel, min_views)[0]]
-        return self.ids[sel].copy(), self.x[sel].copy(), self.P[sel] + self.floor[sel]
+        return self.ids[sel].copy(), *self.best(sel)
 
 
 def _skew_batch(v: np.ndarray) -> np.ndarray:

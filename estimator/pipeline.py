@@ -461,9 +461,9 @@ class Fusion:
             lm = self.landmarks
             rows, ok, rejected = lm.classify(ids_a)
             have = rows >= 0
-            sig_lm = np.sqrt(np.trace(lm.P[rows[have]] + lm.floor[rows[have]],
-                                      axis1=1, axis2=2) / 3.0)
-            pts_a[ok] = lm.x[rows[ok]]
+            x_lm, P_lm = lm.best(rows[have])
+            sig_lm = np.sqrt(np.trace(P_lm, axis1=1, axis2=2) / 3.0)
+            pts_a[ok] = x_lm[ok[have]]
             # Reportable: the landmark's σ; still converging: the larger of the two.
             sig_a[have] = np.where(ok[have], sig_lm, np.maximum(sig_a[have], sig_lm))
             keep = ~rejected

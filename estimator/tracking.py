@@ -530,7 +530,8 @@ class TargetParams:
     # The target's landmark EKF: the tracker's pixel noise, never dropped (the tracker is
     # declared lost instead), the click's ray prior from the structure points' spread.
     landmark: LandmarkParams = field(default_factory=lambda: LandmarkParams(
-        pixel_sigma_px=1.5, min_views=1, max_strikes=2**31 - 1, ray_sigma_fraction=0.1))
+        pixel_sigma_px=1.5, min_views=1, max_strikes=2**31 - 1, ray_sigma_fraction=0.1,
+        joint=None))
 
 
 def nearest_surface(ranges: np.ndarray, pixel_distance: np.ndarray,
@@ -598,12 +599,20 @@ def point_on_ray(points_ned: np.ndarray, sigma_m: np.ndarray | None,
 
 def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
                        click_uv: np.ndarray, camera_position_ned: np.ndarray, ray: np.ndarray,
-                       focal_px: float, radius_px: float = 12.0, max_radius_px: float = 24.0
+                       focal_px: float, radius_px: float = 12.0, max_radius_px: float = 24.0,
+                       converged_sigma_fraction: float = 0.02
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The clicked point from the port structure: the points projecting (``uv_points``, NaN
     when not in view) within ``radius_px`` of the click — widened to ``max_radius_px`` when
     fewer than two of them are on the nearest surface — through ``point_on_ray``. Returns
-    (point, covariance, indexes of the anchors on the chosen surface) or None."""
+    (point, covariance, indexes of the anchors on the chosen surface) or None.
+
+    Anchored on converged points, the point's σ along the ray has a floor of
+    ``converged_sigma_fraction`` of the range instead of ``point_on_ray``'s 10 %: such
+    points are solved jointly with the views' attitudes (``estimator.landmarks.ViewWindow``),
+    better than the target's own views can place it — those read the fused heading's wander
+    as parallax (replay report, default recording: distance error median 0.11 m, within
+    tolerance 71 %, against 0.15 m and 57 % with the 10 % floor)."""
     pts = np.asarray(points_ned, float).reshape(-1, 3)
     sig = np.asarray(sigma_m, float).reshape(-1)
     d = np.linalg.norm(np.asarray(uv_points, float).reshape(-1, 2)
@@ -619,11 +628,14 @@ def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: n
         near = np.flatnonzero(d <= radius)
         if not len(near):
             continue
+        floor = {}
         if converged[near].any():
             near = near[converged[near]]
+            floor = {"ray_sigma_fraction": converged_sigma_fraction}
         keep = nearest_surface((pts[near] - c) @ u, d[near])
         if keep.sum() >= 2 or radius >= max_radius_px:
-            X, P = point_on_ray(pts[near], sig[near], c, u, focal_px, pixel_distance=d[near])
+            X, P = point_on_ray(pts[near], sig[near], c, u, focal_px, pixel_distance=d[near],
+                                **floor)
             return X, P, near[keep]
     return None
 
