@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from estimator.frames import wrap_angle
+from estimator.landmarks import converged
 from estimator.prediction import predict_outlines
 from estimator.records import CameraCalibration, Hull
 
@@ -194,13 +195,18 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
 
     # port structure: visible points on the video, nearby points in plan, same colours
     pts = np.zeros((0, 3))
+    sigma = np.zeros(0)
     ids = np.zeros(0, dtype=int)
     if structure is not None and len(structure[0]):
         pts = np.asarray(structure[0], dtype=float).reshape(-1, 3)
+        sigma = np.asarray(structure[1], dtype=float).reshape(-1)
         ids = np.asarray(structure[2])
         finite = np.isfinite(pts).all(axis=1)
-        pts, ids = pts[finite], ids[finite]
+        pts, sigma, ids = pts[finite], sigma[finite], ids[finite]
     dist = np.linalg.norm(pts - pose.position_ned, axis=1)
+    # Points still converging (σ beyond a few % of the range) are drawn hollow: their
+    # distance is not to be trusted yet.
+    trusted = converged(sigma, dist)
     visible, uv = projector.project_points(pose, pts)
     vis = np.flatnonzero(visible)
     vis = vis[np.argsort(dist[vis])[:MAX_OVERLAY_POINTS]]
@@ -208,6 +214,7 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
         "uv": _round(uv[vis], 1),
         "distance_m": _round(dist[vis], 2),
         "color": hue_color(dist[vis], color_range),
+        "converged": trusted[vis].tolist(),
         "id": ids[vis].tolist(),
     }
     # The plan reaches further than the water grid: the quay must show during the approach.
@@ -215,7 +222,8 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
     near = np.flatnonzero(horizontal <= PLAN_RANGE_FACTOR * radius)
     near = near[np.argsort(horizontal[near])[:MAX_PLAN_POINTS]]
     plan["points"] = {"ne": _round(pts[near, :2], 2), "color": hue_color(dist[near],
-                                                                         color_range)}
+                                                                         color_range),
+                      "converged": trusted[near].tolist()}
 
     # predicted hull outlines at the water line, 1..N s ahead
     outlines = predict_outlines(state, hull, config.prediction_seconds)

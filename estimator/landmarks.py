@@ -115,6 +115,13 @@ class LandmarkUpdate:
     dropped: int  # landmarks dropped after max_strikes gated views running
 
 
+def converged(sigma_m: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+    """Mask of the structure points whose σ is within the reporting fraction of their range
+    (``LandmarkParams.max_relative_sigma``): trusted; the others are still converging."""
+    return np.asarray(sigma_m, float) <= LandmarkParams.max_relative_sigma * np.asarray(
+        range_m, float)
+
+
 def camera_pose_covariance(position_cov: np.ndarray, attitude_cov: np.ndarray,
                            lever_level: np.ndarray,
                            cross_cov: np.ndarray | None = None) -> np.ndarray:

@@ -67,7 +67,7 @@ import cv2
 import numpy as np
 from filterpy.monte_carlo import systematic_resample
 
-from .landmarks import LandmarkMap, LandmarkParams, ray_prior
+from .landmarks import LandmarkMap, LandmarkParams, converged, ray_prior
 from .records import CameraCalibration
 
 METHODS = ("full", "template", "camshift_pf")
@@ -623,14 +623,14 @@ def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: n
     # Converged points (σ within the landmarks' reporting fraction of their range) anchor the
     # click when there are any near it: a point still converging may be metres off along its
     # ray.
-    converged = sig <= LandmarkParams.max_relative_sigma * np.linalg.norm(pts - c, axis=1)
+    trusted = converged(sig, np.linalg.norm(pts - c, axis=1))
     for radius in (radius_px, max_radius_px):
         near = np.flatnonzero(d <= radius)
         if not len(near):
             continue
         floor = {}
-        if converged[near].any():
-            near = near[converged[near]]
+        if trusted[near].any():
+            near = near[trusted[near]]
             floor = {"ray_sigma_fraction": converged_sigma_fraction}
         keep = nearest_surface((pts[near] - c) @ u, d[near])
         if keep.sum() >= 2 or radius >= max_radius_px:

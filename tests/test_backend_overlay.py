@@ -125,10 +125,13 @@ def test_points_colour_and_visibility():
     state = make_state()
     projector = Projector(CAMERA)
     pts = np.array([[13.0, 0.0, -1.0], [25.0, 2.0, -3.0], [-20.0, 0.0, 0.0]])  # ahead, behind
-    overlay = build_overlay(state, CAMERA, HULL, projector, (pts, np.ones(3), np.arange(3)),
+    sigma = np.array([0.2, 3.0, 0.2])  # the second one still converging (σ 14 % of range)
+    overlay = build_overlay(state, CAMERA, HULL, projector, (pts, sigma, np.arange(3)),
                             config=OverlayConfig(water_down_m=WATER, color_range_m=40.0))
     points = overlay["video"]["points"]
     assert points["id"] == [0, 1]
+    assert points["converged"] == [True, False]
+    assert overlay["birdseye"]["points"]["converged"] == [True, True, False]  # nearest first
     assert points["distance_m"][0] == pytest.approx(np.linalg.norm(pts[0] - [3.0, 0, -0.4]),
                                                     abs=0.01)
     assert points["color"][0] == hue_color([10.0], 40.0)[0]

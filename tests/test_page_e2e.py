@@ -305,6 +305,45 @@ def test_overlay_greys_out_when_untrusted(page) -> None:
     shot(page, "02_untrusted_grey")
 
 
+# JS: the overlay canvas at the centre pixel of isolated structure points (no other point
+# within 9 px, no grid line within 5 px), by kind: converged points are drawn filled,
+# converging ones as hollow rings.
+SAMPLE_POINT_CENTRES = """() => {
+  const b = window.berthing, f = b.frame, v = b.view;
+  const ctx = document.getElementById('overlay').getContext('2d', {willReadFrequently: true});
+  const pts = f.overlay.video.points, segs = [];
+  for (const l of f.overlay.video.grid.lines) for (let i = 1; i < l.length; i++)
+    segs.push([l[i-1], l[i]]);
+  const dSeg = (p, [a, c]) => {
+    const dx = c[0] - a[0], dy = c[1] - a[1];
+    const t = Math.max(0, Math.min(1, ((p[0]-a[0])*dx + (p[1]-a[1])*dy) / (dx*dx + dy*dy || 1)));
+    return Math.hypot(p[0] - a[0] - t*dx, p[1] - a[1] - t*dy);
+  };
+  const out = {filled: [], hollow: []};
+  pts.uv.forEach((p, i) => {
+    if (pts.uv.some((q, j) => j !== i && Math.hypot(q[0]-p[0], q[1]-p[1]) < 9)) return;
+    if (segs.some(s => dSeg(p, s) < 5)) return;
+    const d = ctx.getImageData(Math.round((v.ox + p[0] * v.scale) * v.dpr),
+                               Math.round((v.oy + p[1] * v.scale) * v.dpr), 1, 1).data;
+    (pts.converged[i] ? out.filled : out.hollow).push(d[3]);
+  });
+  return out;
+}"""
+
+
+def test_converging_points_are_drawn_hollow(page) -> None:
+    """The officer tells the trusted structure points (filled) from those still converging
+    (hollow rings), whose distance may still be metres off."""
+    wait_trusted(page)
+    wait_frame(page, "f => f.overlay && f.overlay.video.points.converged.includes(true)"
+               " && f.overlay.video.points.converged.includes(false)")
+    pause(page)
+    s = page.evaluate(SAMPLE_POINT_CENTRES)
+    assert len(s["filled"]) >= 3 and len(s["hollow"]) >= 3, s
+    assert sorted(s["filled"])[len(s["filled"]) // 2] > 150, s
+    assert sorted(s["hollow"])[len(s["hollow"]) // 2] < 60, s
+
+
 def test_birdseye_shows_the_ship(page) -> None:
     wait_trusted(page)
     sample = """() => {

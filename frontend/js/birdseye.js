@@ -171,6 +171,12 @@ export class BirdsEye {
     ctx.globalAlpha = c.pointAlpha;
     for (let i = 0; i < points.ne.length; i++) {
       const [x, y] = this.toScreen(points.ne[i]);
+      if (points.converged?.[i] === false) {  // still converging: hollow, as on the video
+        ctx.strokeStyle = points.color[i];
+        ctx.lineWidth = 1;
+        ctx.strokeRect(x - 1.8, y - 1.8, 3.6, 3.6);
+        continue;
+      }
       ctx.fillStyle = points.color[i];
       ctx.fillRect(x - 1.8, y - 1.8, 3.6, 3.6);
     }

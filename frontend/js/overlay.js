@@ -128,14 +128,21 @@ function drawPoints(ctx, points, px, c) {
   if (!points?.uv?.length) return;
   const r = 2.6 * px;
   ctx.globalAlpha = c.pointAlpha;
-  // a dark rim keeps yellow and cyan points visible on bright quay walls
-  ctx.strokeStyle = "rgba(0,0,0,0.55)";
-  ctx.lineWidth = 0.8 * px;
   for (let i = 0; i < points.uv.length; i++) {
     const [u, v] = points.uv[i];
-    ctx.fillStyle = points.color[i];
     ctx.beginPath();
     ctx.arc(u, v, r, 0, 2 * Math.PI);
+    if (points.converged?.[i] === false) {
+      // still converging (its distance not to be trusted yet): a hollow ring
+      ctx.strokeStyle = points.color[i];
+      ctx.lineWidth = 1.2 * px;
+      ctx.stroke();
+      continue;
+    }
+    // a dark rim keeps yellow and cyan points visible on bright quay walls
+    ctx.fillStyle = points.color[i];
+    ctx.strokeStyle = "rgba(0,0,0,0.55)";
+    ctx.lineWidth = 0.8 * px;
     ctx.fill();
     ctx.stroke();
   }
