@@ -323,7 +323,10 @@ def test_rendered_sequence_tracks_truth(rendered_run):
                                           - clean[i].camera_position_world)
     assert direction_error_deg(moved, truth[i][0] @ (truth[j][1] - truth[i][1])) < 3.0
     share, length = trajectory_residual(clean, truth[:N_CLEAN])
-    assert length > 2.0 and share < 0.02
+    # The largest residual is in the first frames after the initialisation, before the first
+    # local BA; over this 3 m path it varies from 1.2 to 3.5 % with the front end's settings
+    # (template size, blur, iterations). A broken VO is off by tens of %.
+    assert length > 2.0 and share < 0.04
     # The API: the frame's observations are map points, in pixels inside the image.
     o = clean[-1]
     ids, uv = o.observations

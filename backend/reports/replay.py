@@ -1039,7 +1039,9 @@ def format_replay_report(report: dict[str, Any]) -> str:
         lines += ["", f"fig. 14: {ss['reason']}"]
     st = report["structure"]
     lines += ["", f"structure: {st['points']} points, {st['matched']} matched to a true scene "
-                  f"point within {st['gate']}",
+                  f"point within {st['gate']} (the scene points sample outlines sparsely: a "
+                  "coarse check; the 3-D error against the rendered surface is under the "
+                  "port-structure refinement below)",
               "  range from the camera   points  matched  median (m)  p90 (m)"]
     for b in st["bands"]:
         lo, hi = b["range_m"]
