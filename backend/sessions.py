@@ -16,6 +16,7 @@ import bisect
 import copy
 import json
 import logging
+import math
 import re
 import threading
 import time
@@ -32,11 +33,18 @@ import numpy as np
 from estimator.frames import ecef_to_ned, geodetic_to_ecef, wrap_angle
 from estimator.landmarks import camera_pose_covariance
 from estimator.prediction import predict_outlines
-from estimator.tracking import DesignatedTarget, TargetParams, point_on_ray, structure_point_at
+from estimator.tracking import (
+    DESIGNATION_RADIUS_PX,
+    DesignatedTarget,
+    TargetParams,
+    point_on_ray,
+    structure_point_at,
+)
 from recordings.format import Recording, RecordingError, load, summary
 
 from .engine import EngineFactory, FusionEngine
 from .geometry import (
+    CameraPose,
     Projector,
     berth_metrics,
     camera_pose,
@@ -57,11 +65,11 @@ log = logging.getLogger(__name__)
 
 RECORDING_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 JPEG_QUALITY = 80
-DESIGNATION_RADIUS_PX = 12.0  # structure points this close to the clicked pixel anchor it
 # (widened to twice this when fewer than two of them are on the nearest surface)
 FRAME_BUFFER = 30  # recent frames kept (3 s): a click on a frame just shown, catch-up
 TARGET_WINDOW_PX = 31  # template side of the image tracker, full-size pixels
 FRAME_MATCH_S = 0.06  # a frame_time matches a stored frame within this (frames are 0.1 s apart)
+REANCHOR_INTERVAL_S = 1.0  # a target's 3-D point is re-anchored on the structure this often
 
 
 # ------------------------------------------------------------------------------- errors
@@ -237,6 +245,7 @@ class Target:
     score: float | None = None
     reason: str = ""
     distance_sigma_m: float | None = None  # 1-σ of the distance from the 3-D point's covariance
+    reanchored_t: float = -math.inf  # structure time the 3-D point was last re-anchored on
 
 
 @dataclass
@@ -752,12 +761,24 @@ class Session:
             target.frame_index = -2
             return
         target.frame_index = index
-        target.position_ned = st.position_ned
+        self._reanchor(target, state, C, c)
+        target.position_ned = tr.position_ned
         target.status = st.status
         target.tracked_uv = None if st.uv is None else (float(st.uv[0]), float(st.uv[1]))
         target.score = st.score
         target.reason = st.reason
         target.distance_sigma_m = st.distance_sigma_m
+
+    def _reanchor(self, target: Target, state: Any, C: np.ndarray, c: np.ndarray) -> None:
+        """Re-anchor a target's 3-D point on the structure around its tracked pixel, at most
+        once a second (``DesignatedTarget.reanchor``; lock held)."""
+        pts, sigma, _ids = self._structure
+        t = self._structure_t
+        if t is None or not len(pts) or t - target.reanchored_t < REANCHOR_INTERVAL_S:
+            return
+        target.reanchored_t = t
+        _visible, uv = self.projector.project_points(CameraPose(C, c), pts)
+        target.tracker.reanchor(pts, sigma, uv, C, c)
 
     def _update_targets(self, state: Any, index: int, image: np.ndarray) -> None:
         """Track every target in the new frame and extend the tracks (lock held)."""

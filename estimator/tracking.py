@@ -597,9 +597,13 @@ def point_on_ray(points_ned: np.ndarray, sigma_m: np.ndarray | None,
     return c + r * u, P
 
 
+DESIGNATION_RADIUS_PX = 12.0  # structure points this close to a clicked pixel anchor it
+
+
 def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
                        click_uv: np.ndarray, camera_position_ned: np.ndarray, ray: np.ndarray,
-                       focal_px: float, radius_px: float = 12.0, max_radius_px: float = 24.0,
+                       focal_px: float, radius_px: float = DESIGNATION_RADIUS_PX,
+                       max_radius_px: float = 2 * DESIGNATION_RADIUS_PX,
                        converged_sigma_fraction: float = 0.02
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The clicked point from the port structure: the points projecting (``uv_points``, NaN
@@ -642,12 +646,14 @@ def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: n
 
 class DesignatedTarget:
     """A clicked point: its image track (``TargetTracker``) and its 3-D point, one landmark
-    EKF (``estimator.landmarks``) fed with every tracked view and the fused camera pose, so
-    the distance stays on the clicked point as the ship moves. The image track and the 3-D
-    point check each other: a track the 3-D point's χ² gate rejects ``max_disagreement``
-    times running is declared lost, and a lost track is searched for around the 3-D point's
-    projection (re-acquisition). While lost the 3-D point and its distance are still given
-    (from the views so far) with ``status`` "lost" — never a silently wrong distance.
+    EKF (``estimator.landmarks``) fed with every tracked view and the fused camera pose, and
+    re-anchored on the converged port structure around the tracked pixel as that structure
+    is refreshed (``reanchor``), so the distance stays on the clicked point as the ship
+    moves. The image track and the 3-D point check each other: a track the 3-D point's χ²
+    gate rejects ``max_disagreement`` times running is declared lost, and a lost track is
+    searched for around the 3-D point's projection (re-acquisition). While lost the 3-D
+    point and its distance are still given (from the views so far) with ``status`` "lost" —
+    never a silently wrong distance.
 
     ``position_ned``/``covariance``: the point under the click (port-structure points near it,
     or the water plane) in the frame ``image`` with the camera pose of that frame."""
@@ -761,6 +767,37 @@ class DesignatedTarget:
                            score=float(res.score), views=int(self.map.views[0]),
                            reason=reason if uv is None or reacquired else "",
                            reacquired=reacquired)
+
+    def reanchor(self, points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
+                 C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray) -> bool:
+        """Take the 3-D point again from the port structure (points, σ, their pixels in this
+        frame) around the pixel tracked now, when the points there have converged; True if
+        it did. Call it as the structure is refreshed (about once a second).
+
+        The structure keeps improving after the click: its views are solved jointly with
+        their attitudes (``estimator.landmarks.ViewWindow``). The target's own views cannot
+        be, and they read the fused heading's wander as parallax (replay report, default
+        recording: distance error median 0.08 m, 86 % within tolerance, against 0.11 m and
+        71 % from the click's structure and the views alone)."""
+        uv = self.tracker.uv
+        if not self.refine or self.status != "tracking" or uv is None:
+            return False
+        C = np.asarray(C_level_to_camera, float)
+        c = np.asarray(camera_position_ned, float)
+        xy = cv2.undistortPoints(np.asarray(uv, np.float64).reshape(1, 1, 2), self._K,
+                                 self._dist).reshape(2)
+        ray = C.T @ np.array([xy[0], xy[1], 1.0])
+        pts = np.asarray(points_ned, float).reshape(-1, 3)
+        sig = np.asarray(sigma_m, float).reshape(-1)
+        found = structure_point_at(pts, sig, uv_points, np.asarray(uv, float), c,
+                                   ray / np.linalg.norm(ray), 0.5 * (self._K[0, 0] + self._K[1, 1]))
+        if found is None:
+            return False
+        X, P, near = found
+        if not len(near) or not converged(sig[near], np.linalg.norm(pts[near] - c, axis=1)).all():
+            return False
+        self.map.x[0], self.map.P[0] = X, P
+        return True
 
     def _view(self, uv: np.ndarray, C: np.ndarray, c: np.ndarray, pose_cov: np.ndarray | None
               ) -> bool:

@@ -233,6 +233,33 @@ def test_designated_target_locks_its_distance_and_reacquires(along_path):
     assert np.linalg.norm(back.uv - truth[5]) < 2.0
 
 
+def test_designated_target_reanchors_on_converged_structure(along_path):
+    """A target whose 3-D point came 15 % too far along its ray takes its point again from
+    the structure around the pixel it tracks — only once the points there have converged
+    (σ within a few % of their range), never a water-plane target."""
+    seq, point = along_path
+    truth = seq.truth(point)
+    C0, p0 = seq.poses[0]
+    start = p0 + 1.15 * (point - p0)
+    rng = np.random.default_rng(2)
+    # structure points on the wall around the true point (a few cm of error), and their pixels
+    around = point + rng.normal(0.0, 0.03, (6, 3))
+    results = {}
+    for name, sigma, refine in (("converged", 0.05, True), ("converging", 3.0, True),
+                                ("water-plane", 0.05, False)):
+        tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None, C0, p0,
+                               params=TargetParams(), seed=0, refine=refine)
+        C, p = seq.poses[1]
+        tgt.update(seq.images[1], C, p)
+        uv = project_points(around, C, p, seq.cam)[0]
+        done = tgt.reanchor(around, np.full(len(around), sigma), uv, C, p)
+        results[name] = (done, np.linalg.norm(tgt.position_ned - point))
+    d0 = np.linalg.norm(start - point)
+    assert results["converged"][0] and results["converged"][1] < 0.1 < 0.5 * d0
+    assert not results["converging"][0] and results["converging"][1] > 0.5 * d0
+    assert not results["water-plane"][0] and results["water-plane"][1] > 0.5 * d0
+
+
 def test_nearest_surface_prefers_the_foreground_unless_a_point_is_clicked():
     ranges = np.array([61.0, 20.5, 63.0, 21.0, 45.0])
     pixels = np.array([2.5, 9.0, 6.0, 11.0, 7.0])

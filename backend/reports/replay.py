@@ -780,6 +780,7 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
     if tracking:
         from backend.reports.tracking import (
             DEFAULT_CLICK_TIMES_S,
+            REANCHOR_FRAMES,
             default_clicks,
             evaluate_landmarks,
             evaluate_tracking,
@@ -793,7 +794,7 @@ def replay_report_for(rec: Any, *, init_s: float = INIT_S, end_s: float | None =
         clicks = [c for c in default_clicks(rec, times_s=times) if c.frame < len(rp.vo)]
         show("tracking and landmark evaluation")
         run = run_fusion(rec, vo_outputs=rp.vo, snapshot_frames=[c.frame for c in clicks],
-                         options=full, end_s=end_s)
+                         snapshot_every=REANCHOR_FRAMES, options=full, end_s=end_s)
         report["tracking"] = evaluate_tracking(rec, run, clicks, end_s=end_s)
         report["landmarks"] = evaluate_landmarks(rec, run)
     fusion_s = main.wall_s

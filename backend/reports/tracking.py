@@ -3,7 +3,8 @@ designated-target tracking (seed 002's fig. 7) and the port-structure refinement
 fig. 10). Pure functions; the replay report (``backend/reports/replay.py``) calls them:
 
     clicks = default_clicks(rec)
-    run = run_fusion(rec, vo_outputs=rp.vo, snapshot_frames=[c.frame for c in clicks])
+    run = run_fusion(rec, vo_outputs=rp.vo, snapshot_frames=[c.frame for c in clicks],
+                     snapshot_every=REANCHOR_FRAMES)
     report["tracking"] = evaluate_tracking(rec, run, clicks)
     report["landmarks"] = evaluate_landmarks(rec, run)
 
@@ -55,6 +56,7 @@ import numpy as np
 from estimator.frames import euler_to_dcm
 from estimator.landmarks import camera_pose_covariance
 from estimator.tracking import (
+    DESIGNATION_RADIUS_PX,
     METHODS,
     DesignatedTarget,
     TargetParams,
@@ -64,7 +66,9 @@ from estimator.tracking import (
 )
 
 LOSS_PX = 10.0  # a "tracking" point farther than this from the truth is an undetected loss
-DESIGNATION_RADIUS_PX = 12.0  # structure points this close to the click anchor it (server)
+# The structure is snapshot (and the targets re-anchored on it) every this many frames after
+# the first click: once a second, as the server refreshes it.
+REANCHOR_FRAMES = 10
 CLICK_KINDS = ("quay", "fender", "ladder")  # on the quay wall (bollards: see the report)
 CLICK_RANGE_M = (5.0, 30.0)
 CLICK_MARGIN_PX = 40.0  # clicked points at least this far inside the image
@@ -130,7 +134,8 @@ class FusionRun:
 
 
 def run_fusion(rec: Any, vo_outputs: Sequence[Any] | None = None,
-               snapshot_frames: Iterable[int] = (), options: Any = None,
+               snapshot_frames: Iterable[int] = (), snapshot_every: int = 0,
+               options: Any = None,
                end_s: float | None = None,
                progress: Callable[[str], None] | None = None) -> FusionRun:
     """Replay ``rec`` through the fusion (``options``: ``FusionOptions``, default ones) and
@@ -172,6 +177,8 @@ def run_fusion(rec: Any, vo_outputs: Sequence[Any] | None = None,
         - np.asarray(rec.calibration.imu.lever_arm_body, float),
         C_camera_to_body=np.asarray(cam.C_camera_to_body, float), vo_ms=vo_ms)
     snaps = set(int(k) for k in snapshot_frames)
+    if snapshot_every > 0 and snaps:  # and every ``snapshot_every`` frames after the first
+        snaps |= set(range(min(snaps), n, snapshot_every))
     history: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {c: [] for c in VIEW_CHECKPOINTS}
     prev_views = np.zeros(0, np.int64)
     tic = time.perf_counter()
@@ -478,6 +485,9 @@ def evaluate_tracking(rec: Any, run: FusionRun, clicks: Sequence[Click] | None =
                 t0 = time.perf_counter()
                 if m == DESIGNATED:
                     st = obj.update(image, C, c, cov)
+                    if k in run.structure_at:  # the structure refreshed: re-anchor on it
+                        pts, sig, _ids = run.structure_at[k]
+                        obj.reanchor(pts, sig, _project(cam, C, c, pts)[0], C, c)
                     uv_est, tracking, reacq = st.uv, st.status == "tracking", st.reacquired
                     d_err, d_sig = st.distance_m - d_true, st.distance_sigma_m
                     guess = obj.tracker.uv
@@ -844,7 +854,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(text, file=sys.stderr, flush=True)
 
     clicks = default_clicks(rec)
-    run = run_fusion(rec, snapshot_frames=[c.frame for c in clicks], end_s=args.end,
+    run = run_fusion(rec, snapshot_frames=[c.frame for c in clicks],
+                     snapshot_every=REANCHOR_FRAMES, end_s=args.end,
                      progress=show)
     tr = evaluate_tracking(rec, run, clicks, end_s=args.end, progress=show)
     lm = evaluate_landmarks(rec, run, progress=show)
