@@ -184,7 +184,7 @@ class ViewWindow:
     away off by decimetres. The window restores the coupling over its span:
 
     - the camera centres are held at the fused positions (millimetres);
-    - each view's attitude may move about its fused value (prior σ ``attitude_sigma_deg``);
+    - each view's attitude may move about its fused value (prior: the fused covariance);
     - the landmarks are free.
 
     Many landmarks seen from each view then fix the views' relative attitudes. The fused
@@ -265,8 +265,8 @@ class ViewWindow:
         # A view's rotation is only as good as the landmarks it sees.
         few = np.bincount(view_of, minlength=len(C)) < p.min_view_landmarks
         for _ in range(p.iterations):
-            X, _A = _triangulate_rays(C, centre, view_of, by_point, xy, X, 1.0 / sigma**2,
-                                      x_prior, info_prior)
+            X, _A = _triangulate_rays(C, centre, view_of, point_of, by_point, xy, X,
+                                      1.0 / sigma**2, x_prior, info_prior)
             C, H = _solve_rotations(C, prior, prior_info, centre, X, view_of, point_of,
                                     by_view, xy, sigma, self.focal, p.huber_px)
             C[few] = prior[few]
@@ -276,7 +276,7 @@ class ViewWindow:
         # Each ray's angular variance: the pixel noise plus what is left of its view's
         # rotation uncertainty (small with many landmarks, the fused one with few).
         rotation_var = np.trace(np.linalg.inv(H), axis1=1, axis2=2) / 3.0
-        X, A = _triangulate_rays(C, centre, view_of, by_point, xy, X,
+        X, A = _triangulate_rays(C, centre, view_of, point_of, by_point, xy, X,
                                  1.0 / (sigma**2 + rotation_var[view_of]), x_prior, info_prior)
         cov = np.linalg.inv(A + 1e-9 * np.eye(3))
         return ids, X, cov, np.bincount(point_of, minlength=len(ids))
@@ -298,7 +298,7 @@ class _Groups:
 
 
 def _triangulate_rays(C: np.ndarray, centre: np.ndarray, view_of: np.ndarray,
-                      by_point: _Groups, xy: np.ndarray, X: np.ndarray,
+                      point_of: np.ndarray, by_point: _Groups, xy: np.ndarray, X: np.ndarray,
                       ray_info: np.ndarray | float, x_prior: np.ndarray,
                       info_prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The points from their rays and their priors (``x_prior``, inverse covariances
@@ -311,9 +311,6 @@ def _triangulate_rays(C: np.ndarray, centre: np.ndarray, view_of: np.ndarray,
     M = np.eye(3) - rays[:, :, None] * rays[:, None, :]
     o = centre[view_of]
     Mo = np.einsum("nij,nj->ni", M, o)
-    point_of = np.empty(len(xy), np.int64)
-    point_of[by_point.order] = np.repeat(np.arange(len(by_point.starts)),
-                                         np.diff(np.append(by_point.starts, len(xy))))
     w = ray_info / np.maximum(np.linalg.norm(X[point_of] - o, axis=1), 1.0) ** 2
     A = by_point.sum(w[:, None, None] * M) + info_prior
     b = by_point.sum(w[:, None] * Mo) + (info_prior @ x_prior[..., None])[..., 0]
