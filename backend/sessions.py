@@ -65,7 +65,6 @@ log = logging.getLogger(__name__)
 
 RECORDING_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 JPEG_QUALITY = 80
-# (widened to twice this when fewer than two of them are on the nearest surface)
 FRAME_BUFFER = 30  # recent frames kept (3 s): a click on a frame just shown, catch-up
 TARGET_WINDOW_PX = 31  # template side of the image tracker, full-size pixels
 FRAME_MATCH_S = 0.06  # a frame_time matches a stored frame within this (frames are 0.1 s apart)
@@ -664,7 +663,7 @@ class Session:
         if len(pts):
             _visible, uv = p.project_points(pose, pts)
             found = structure_point_at(pts, sigma, uv, np.array([u, v]), pose.position_ned, ray,
-                                       focal, DESIGNATION_RADIUS_PX, 2 * DESIGNATION_RADIUS_PX)
+                                       focal)
         if found is not None:
             point, cov, near = found
             method = "structure"
@@ -761,7 +760,7 @@ class Session:
             target.frame_index = -2
             return
         target.frame_index = index
-        self._reanchor(target, state, C, c)
+        self._reanchor(target, C, c)
         target.position_ned = tr.position_ned
         target.status = st.status
         target.tracked_uv = None if st.uv is None else (float(st.uv[0]), float(st.uv[1]))
@@ -769,7 +768,7 @@ class Session:
         target.reason = st.reason
         target.distance_sigma_m = st.distance_sigma_m
 
-    def _reanchor(self, target: Target, state: Any, C: np.ndarray, c: np.ndarray) -> None:
+    def _reanchor(self, target: Target, C: np.ndarray, c: np.ndarray) -> None:
         """Re-anchor a target's 3-D point on the structure around its tracked pixel, at most
         once a second (``DesignatedTarget.reanchor``; lock held)."""
         pts, sigma, _ids = self._structure

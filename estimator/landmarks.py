@@ -60,7 +60,9 @@ from .frames import skew
 
 @dataclass
 class LandmarkParams:
-    pixel_sigma_px: float = 2.0  # tracked corner noise (LK: jitter and slow slide), full-size px
+    # View noise of the decoupled EKFs (full-size px): the corner noise and some of the pose
+    # error they cannot model (``JointParams.pixel_sigma_px`` is the corner noise alone).
+    pixel_sigma_px: float = 2.0
     min_views: int = 5  # views before a refined landmark replaces the raw point
     gate_probability: float = 0.999  # χ² gate (2 dof) of a view against the prior
     max_strikes: int = 3  # gated views running before the landmark is dropped (re-seeded)
@@ -228,16 +230,15 @@ class ViewWindow:
         return t - self._last_solve >= self.params.solve_interval_s and len(self.views) >= 3
 
     def solve(self, t: float, priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(ids, positions (N,3), covariances (N,3,3), views) of the landmarks with
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, positions (N,3), covariances (N,3,3)) of the landmarks with
         ``min_views`` views in the window, from the joint solution. ``priors(ids)``: each
         landmark's prior (position, inverse covariance; zero where none) — the same the
         landmark EKF started from, so a point with little parallax in the window stays near
         it."""
         p = self.params
         self._last_solve = float(t)
-        empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)),
-                 np.zeros(0, np.int64))
+        empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)))
         if len(self.views) < 3:
             return empty
         view_of = np.concatenate([np.full(len(v.ids), k) for k, v in enumerate(self.views)])
@@ -278,8 +279,7 @@ class ViewWindow:
         rotation_var = np.trace(np.linalg.inv(H), axis1=1, axis2=2) / 3.0
         X, A = _triangulate_rays(C, centre, view_of, point_of, by_point, xy, X,
                                  1.0 / (sigma**2 + rotation_var[view_of]), x_prior, info_prior)
-        cov = np.linalg.inv(A + 1e-9 * np.eye(3))
-        return ids, X, cov, np.bincount(point_of, minlength=len(ids))
+        return ids, X, np.linalg.inv(A + 1e-9 * np.eye(3))
 
 
 class _Groups:
@@ -555,7 +555,7 @@ class LandmarkMap:
             att = None if pose_cov is None else np.asarray(pose_cov, float)[3:, 3:]
             self.window.add(t, C, p, att, self.ids[rows[live]], z_meas[live])
             if self.window.due(t):
-                j_ids, X, P, _views = self.window.solve(t, self._seed_prior)
+                j_ids, X, P = self.window.solve(t, self._seed_prior)
                 j_rows = self.lookup(j_ids)
                 have = j_rows >= 0
                 self.x_joint[j_rows[have]] = X[have]
@@ -563,8 +563,8 @@ class LandmarkMap:
         return out
 
     def _seed_prior(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The seed prior of landmarks ``ids`` (ids without one: the current EKF estimate as a
-        start, no information)."""
+        """The prior each of landmarks ``ids`` was seeded with (position, inverse covariance;
+        zero for an id without a landmark — the window only holds ids the map gave it)."""
         rows = self.lookup(ids)
         have = rows >= 0
         x = np.zeros((len(ids), 3))

@@ -597,7 +597,9 @@ def point_on_ray(points_ned: np.ndarray, sigma_m: np.ndarray | None,
     return c + r * u, P
 
 
-DESIGNATION_RADIUS_PX = 12.0  # structure points this close to a clicked pixel anchor it
+# Structure points this close to a clicked pixel anchor it (widened to twice this when fewer
+# than two of them are on the nearest surface).
+DESIGNATION_RADIUS_PX = 12.0
 
 
 def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,

@@ -462,6 +462,7 @@ class _Tracks:
         return _Tracks(*(a[index] for a in self._columns()))
 
     def extend(self, other: _Tracks) -> _Tracks:
+        # An empty table's template column has no side yet: take the other's as it is.
         return _Tracks(*(np.concatenate([a, b]) if len(a) else b.copy() for a, b in zip(
             self._columns(), other._columns(), strict=True)))
 
@@ -553,7 +554,8 @@ class VisualOdometry:
         """Track the frame taken at ``time`` and return the VO output for it."""
         t_start = _time.perf_counter()
         gray = image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
-        blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), self.params.template_blur_px)
+        blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), self.params.template_blur_px
+                                   ) if self.params.template_check else None
         if len(self._tracks) and self._prev_gray is not None:
             uv, ok = self._track_lk(self._prev_gray, gray)
             if self.params.template_check:
@@ -638,13 +640,13 @@ class VisualOdometry:
         stretch = np.linalg.svd(warp, compute_uv=False)
         good = ((ncc >= p.template_min_ncc)
                 & (np.linalg.norm(centre - uv[rows], axis=1) <= p.template_max_shift_px)
-                & (stretch[:, 0] < 2.0) & (stretch[:, 1] > 0.5))
+                & (stretch[:, 0] < 2.0) & (stretch[:, 1] > 0.5))  # a warp gone wild in a frame
         uv[rows[good]] = centre[good]
         tr.warp[rows[good]] = warp[good]
         ok[rows[~good]] = False
         return uv, ok
 
-    def _renew_templates(self, image: np.ndarray) -> None:
+    def _renew_templates(self, image: np.ndarray | None) -> None:
         """New tracks, and those whose warp stretched the template beyond
         ``template_max_stretch``, take a template from this image (blurred)."""
         tr, p = self._tracks, self.params

@@ -56,7 +56,6 @@ import numpy as np
 from estimator.frames import euler_to_dcm
 from estimator.landmarks import camera_pose_covariance
 from estimator.tracking import (
-    DESIGNATION_RADIUS_PX,
     METHODS,
     DesignatedTarget,
     TargetParams,
@@ -362,7 +361,8 @@ def _clicked_point(rec: Any, truth: _Truth, click: Click) -> int | None:
 def _designate(rec: Any, run: FusionRun, click: Click
                ) -> tuple[np.ndarray, np.ndarray, str, int] | None:
     """The server's designation at the click frame: the structure points projecting within
-    ``DESIGNATION_RADIUS_PX`` of the click (``point_on_ray``), else the water plane."""
+    ``estimator.tracking.DESIGNATION_RADIUS_PX`` of the click (``point_on_ray``), else the
+    water plane."""
     pose = run.camera(click.frame)
     if pose is None:
         return None
@@ -376,8 +376,7 @@ def _designate(rec: Any, run: FusionRun, click: Click
     pts, sigma, _ids = run.structure_at.get(click.frame, (np.zeros((0, 3)), np.zeros(0), None))
     if len(pts):
         uv, _z = _project(cam, C, c, pts)
-        found = structure_point_at(pts, sigma, uv, np.asarray(click.uv, float), c, ray, f,
-                                   DESIGNATION_RADIUS_PX, 2 * DESIGNATION_RADIUS_PX)
+        found = structure_point_at(pts, sigma, uv, np.asarray(click.uv, float), c, ray, f)
         if found is not None:
             return found[0], found[1], "structure", len(found[2])
     h = rec.hull.body_origin_height_m
