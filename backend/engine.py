@@ -36,6 +36,11 @@ class FusionEngine(Protocol):
 
     def structure(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
+    # The structure window's views with their solved attitudes
+    # (``estimator.landmarks.SolvedViews``), None without them: the designated targets are
+    # triangulated in them.
+    def solved_views(self) -> Any | None: ...
+
     def timing(self) -> dict: ...
 
 

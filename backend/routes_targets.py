@@ -33,6 +33,10 @@ class TargetOut(_TargetOutBase):
     reason: str = Field("", description="why the target is lost")
     distance_sigma_m: float | None = Field(
         None, description="1-σ of distance_m from the 3-D point's covariance")
+    views: int = Field(0, description="tracked views (before and after the click) the 3-D "
+                                      "point is triangulated from, in the attitudes the "
+                                      "port-structure window solved; 0: not yet (the point "
+                                      "is the click's)")
 
 
 class TrackPoint(_TrackPointBase):
@@ -72,6 +76,7 @@ def _target_out(session: Session, target: Target) -> dict:
         "reason": target.reason,
         "distance_sigma_m": None if target.distance_sigma_m is None else round(
             float(target.distance_sigma_m), 3),
+        "views": target.views,
     }
 
 
@@ -84,9 +89,12 @@ def create_target(body: TargetCreate, session: SessionDep) -> TargetOut:
     of them are on the nearest surface; that surface's median range along the ray; ``method``
     = ``structure``), else where the ray meets the water plane (``method`` = ``water-plane``);
     422 when neither exists. The point is then tracked in the video frame by frame (particle
-    filter with template matching, ``estimator.tracking``) and its 3-D point refined from the
-    tracked views; ``status`` says whether it is locked in the current frame (``lost`` when
-    occluded, out of the image or not found again where its 3-D point projects)."""
+    filter with template matching, ``estimator.tracking``); a structure point is also tracked
+    back through the 20 s of video before the click, and its 3-D point triangulated from
+    these views in the attitudes the port-structure window solved for them (``views``), at
+    once and about once a second after. ``status`` says whether it is locked in the current
+    frame (``lost`` when occluded, out of the image or not found again where its 3-D point
+    projects)."""
     frame_t = None if body.frame_time == "current" else float(body.frame_time)
     target = session.designate(frame_t, body.u, body.v, body.label)
     with session.lock:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import bisect
 import copy
+import itertools
 import json
 import logging
 import math
@@ -68,7 +69,9 @@ JPEG_QUALITY = 80
 FRAME_BUFFER = 30  # recent frames kept (3 s): a click on a frame just shown, catch-up
 TARGET_WINDOW_PX = 31  # template side of the image tracker, full-size pixels
 FRAME_MATCH_S = 0.06  # a frame_time matches a stored frame within this (frames are 0.1 s apart)
-REANCHOR_INTERVAL_S = 1.0  # a target's 3-D point is re-anchored on the structure this often
+# A target's 3-D point is re-anchored on the structure / triangulated in the structure's
+# solved views this often.
+REANCHOR_INTERVAL_S = 1.0
 
 
 # ------------------------------------------------------------------------------- errors
@@ -245,6 +248,7 @@ class Target:
     reason: str = ""
     distance_sigma_m: float | None = None  # 1-σ of the distance from the 3-D point's covariance
     reanchored_t: float = -math.inf  # structure time the 3-D point was last re-anchored on
+    views: int = 0  # tracked views its 3-D point was last triangulated from (``refine``)
 
 
 @dataclass
@@ -303,6 +307,7 @@ class Session:
         self._structure: tuple[np.ndarray, np.ndarray, np.ndarray] = (
             np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int))
         self._structure_t: float | None = None
+        self._views: Any | None = None  # engine.solved_views() at _structure_t
         self._latest_state: Any | None = None
         self._targets: dict[str, Target] = {}
         self._target_counter = 0
@@ -347,14 +352,15 @@ class Session:
 
     def on_frame(self, result: FrameResult, engine: FusionEngine) -> None:
         refresh = result.live or len(self._times) % 10 == 0
-        structure = None
+        structure = views = None
         if refresh:
             try:
                 pts, sigma, ids = engine.structure()
                 structure = (np.array(pts, dtype=float).reshape(-1, 3),
                              np.array(sigma, dtype=float).ravel(), np.array(ids).ravel())
+                views = engine.solved_views()
             except Exception:  # the structure is a by-product: never stop the replay for it
-                log.exception("engine.structure() failed")
+                log.exception("engine.structure() or solved_views() failed")
             try:
                 self._timing = dict(engine.timing())
             except Exception:
@@ -363,6 +369,7 @@ class Session:
         with self.lock:
             if structure is not None:
                 self._structure, self._structure_t = structure, result.t
+                self._views = views
             self._frames.append((result.index, result.t, result.image))
             if state is not None:
                 self._latest_state = state
@@ -678,6 +685,9 @@ class Session:
                     "plane (above the horizon)")
             point, method = hit, "water-plane"
             _, cov = point_on_ray(hit[None], None, pose.position_ned, ray, focal)
+        # Decoded before the lock is taken (a few hundred ms): the replay goes on meanwhile.
+        earlier = self._earlier_frames(self._frame_index(float(state.time))) \
+            if method == "structure" else []
         with self.lock:
             self._target_counter += 1
             target = Target(id=f"T{self._target_counter}", label=label, method=method,
@@ -685,7 +695,7 @@ class Session:
                                 self._latest_state.time),
                             frame_gpst=float(state.time), uv=(u, v), anchor_ids=anchors,
                             anchor_mean=anchor_mean, support=len(anchors))
-            self._start_tracking(target, state, cov)
+            self._start_tracking(target, state, cov, earlier)
             self._targets[target.id] = target
             self._track(target, self._latest_state)
         self.redraw_if_paused()
@@ -709,9 +719,26 @@ class Session:
         times = np.asarray(self.rec.frame_times, dtype=float)
         return int(np.argmin(np.abs(times - t)))
 
-    def _start_tracking(self, target: Target, state: Any, cov: np.ndarray) -> None:
-        """The image tracker on the clicked frame, brought up to the latest frame from the
-        frame buffer (called with the lock held; a few ms per buffered frame)."""
+    def _earlier_frames(self, index: int) -> list[tuple[float, np.ndarray]]:
+        """(time, gray image) of the frames before frame ``index`` that a designated target
+        tracks back through (``TargetParams.track_back_s``), from the recording; none when
+        they cannot be read (the target then starts from the click alone)."""
+        times = self.rec.frame_times
+        start = int(np.searchsorted(times, times[index] - TargetParams.track_back_s))
+        out = []
+        try:
+            for _i, t, img in itertools.islice(self.rec.frames(start), index - start):
+                out.append((float(t), cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)))
+        except (RecordingError, OSError, cv2.error) as exc:
+            log.warning("frames before frame %d unreadable (%s): no track back", index, exc)
+            return []
+        return out
+
+    def _start_tracking(self, target: Target, state: Any, cov: np.ndarray,
+                        earlier: list[tuple[float, np.ndarray]]) -> None:
+        """The image tracker on the clicked frame (tracked back through ``earlier``, its 3-D
+        point triangulated in the structure's solved views), brought up to the latest frame
+        from the frame buffer (called with the lock held; a few ms per buffered frame)."""
         index = self._frame_index(float(state.time))
         image = next((img for i, _t, img in self._frames if i == index), None)
         try:
@@ -722,7 +749,10 @@ class Session:
             target.tracker = DesignatedTarget(
                 self.rec.calibration.camera, image, np.array(target.uv), target.position_ned,
                 cov, C, c, pose_cov, params=TargetParams(window=window),
-                refine=target.method == "structure")
+                refine=target.method == "structure", t=float(state.time),
+                earlier_frames=earlier)
+            target.views = target.tracker.refine(self._views)
+            target.position_ned = target.tracker.position_ned
         except Exception as exc:  # no image tracking: the target keeps its 3-D point, lost
             log.exception("the image tracker of target %s could not start", target.id)
             target.tracker, target.status = None, "lost"
@@ -750,10 +780,11 @@ class Session:
             return
         try:
             C, c, cov = self._camera(state)
+            t = float(state.time)
             if index == target.frame_index + 1:
-                st = tr.update(image, C, c, cov)
+                st = tr.update(t, image, C, c, cov)
             else:  # a seek or a gap: take it back where its 3-D point projects
-                st = tr.resume(image, C, c, cov)
+                st = tr.resume(t, image, C, c, cov)
         except Exception:  # a tracking failure must not stop the replay
             log.exception("tracking target %s failed on frame %d", target.id, index)
             target.status, target.reason = "lost", "tracking failed"
@@ -769,15 +800,18 @@ class Session:
         target.distance_sigma_m = st.distance_sigma_m
 
     def _reanchor(self, target: Target, C: np.ndarray, c: np.ndarray) -> None:
-        """Re-anchor a target's 3-D point on the structure around its tracked pixel, at most
-        once a second (``DesignatedTarget.reanchor``; lock held)."""
+        """Re-anchor a target's 3-D point on the structure around its tracked pixel and
+        triangulate it in the structure's solved views, at most once a second
+        (``DesignatedTarget.reanchor``, ``refine``; lock held)."""
         pts, sigma, _ids = self._structure
         t = self._structure_t
-        if t is None or not len(pts) or t - target.reanchored_t < REANCHOR_INTERVAL_S:
+        if t is None or t - target.reanchored_t < REANCHOR_INTERVAL_S:
             return
         target.reanchored_t = t
-        _visible, uv = self.projector.project_points(CameraPose(C, c), pts)
-        target.tracker.reanchor(pts, sigma, uv, C, c)
+        if len(pts):
+            _visible, uv = self.projector.project_points(CameraPose(C, c), pts)
+            target.tracker.reanchor(pts, sigma, uv, C, c)
+        target.views = target.tracker.refine(self._views) or target.views
 
     def _update_targets(self, state: Any, index: int, image: np.ndarray) -> None:
         """Track every target in the new frame and extend the tracks (lock held)."""

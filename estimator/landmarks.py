@@ -173,6 +173,97 @@ class _View:
     camera_position_ned: np.ndarray
     ids: np.ndarray
     xy: np.ndarray  # undistorted normalised
+    rotation_var: float = math.inf  # variance per axis of C_solved (rad², unsolved: none)
+
+
+@dataclass(frozen=True)
+class SolvedViews:
+    """The views of a ``ViewWindow`` as of its last solve (a copy): what a point that is
+    not a landmark but was seen in the same frames needs to be triangulated with the solved
+    attitudes — a designated target, tracked on its own (``estimator.tracking``)."""
+
+    time: np.ndarray  # (N,) view times
+    C_level_to_camera: np.ndarray  # (N,3,3) the solved attitudes
+    camera_position_ned: np.ndarray  # (N,3)
+    rotation_var: np.ndarray  # (N,) what is left of each attitude's uncertainty (rad²)
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+    def at(self, times: np.ndarray) -> np.ndarray:
+        """Index of the view at each of ``times`` (within 1 ms), -1 where there is none or
+        it has not been solved yet."""
+        times = np.asarray(times, float).reshape(-1)
+        if not len(self.time):
+            return np.full(len(times), -1, np.int64)
+        k = np.searchsorted(self.time, times)
+        lo, hi = np.clip(k - 1, 0, len(self.time) - 1), np.clip(k, 0, len(self.time) - 1)
+        k = np.where(np.abs(self.time[lo] - times) <= np.abs(self.time[hi] - times), lo, hi)
+        ok = (np.abs(self.time[k] - times) < 1e-3) & np.isfinite(self.rotation_var[k])
+        return np.where(ok, k, -1)
+
+
+def triangulate_point(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                      xy: np.ndarray, ray_var: np.ndarray, x_prior: np.ndarray,
+                      info_prior: np.ndarray, iterations: int = 3, gate: float = 13.8,
+                      chunk: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One point from its views — attitudes (M,3,3), camera centres (M,3), undistorted
+    normalised ``xy`` (M,2), each ray's angular variance ``ray_var`` (M,) — in the order
+    they are trusted (a tracked point's: nearest the click first), and a prior
+    (``x_prior``, inverse covariance ``info_prior``).
+
+    The rays are taken ``chunk`` at a time, each gated against the point so far (its
+    distance from the ray against the ray's noise and the point's covariance; χ², 2 dof,
+    99.9 %). A track that slipped onto another feature at its far end would pull the point
+    if taken at once; here its rays are left out, and so is everything after a chunk mostly
+    rejected (the track is not trusted past where it disagrees). Returns (position, inverse
+    covariance, mask of the rays used)."""
+    C = np.asarray(C_level_to_camera, float).reshape(-1, 3, 3)
+    o = np.asarray(camera_position_ned, float).reshape(-1, 3)
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    ray_var = np.asarray(ray_var, float).reshape(-1)
+    x0 = np.asarray(x_prior, float).reshape(1, 3)
+    info0 = np.asarray(info_prior, float).reshape(1, 3, 3)
+    valid = np.isfinite(xy).all(axis=1) & np.isfinite(ray_var) & np.isfinite(C).all(axis=(1, 2))
+    rays = np.einsum("nji,nj->ni", np.nan_to_num(C), np.column_stack([np.nan_to_num(xy),
+                                                                      np.ones(len(xy))]))
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    used = np.zeros(len(xy), bool)
+    X, A = x0, info0
+    for start in range(0, len(xy), chunk):
+        idx = np.arange(start, min(start + chunk, len(xy)))
+        idx = idx[valid[idx]]
+        if not len(idx):
+            continue
+        if used.any():
+            ok = _ray_chi2(X[0], np.linalg.inv(A[0]), rays[idx], o[idx], ray_var[idx]) <= gate
+            if 2 * ok.sum() < len(idx):
+                break
+            idx = idx[ok]
+        used[idx] = True
+        n = int(used.sum())
+        point_of = np.zeros(n, np.int64)
+        for _ in range(iterations):  # the rays' range weights follow the estimate
+            X, A = _triangulate_rays(C[used], o[used], np.arange(n), point_of,
+                                     _Groups(point_of, 1), xy[used], X, 1.0 / ray_var[used],
+                                     x0, info0)
+    return X[0], A[0], used
+
+
+def _ray_chi2(X: np.ndarray, P: np.ndarray, rays: np.ndarray, centres: np.ndarray,
+              ray_var: np.ndarray) -> np.ndarray:
+    """Squared normalised distance of point ``X`` (covariance ``P``) from each ray (unit
+    ``rays`` from ``centres``, angular variance ``ray_var``): the offset across the ray
+    against the ray's noise at that range plus the point's covariance across it."""
+    d = X - centres
+    helper = np.where(np.abs(rays[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(rays, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    E = np.stack([e1, np.cross(rays, e1)], axis=1)  # (n,2,3): the plane across the ray
+    r = np.einsum("nij,nj->ni", E, d)
+    S = np.einsum("nij,jk,nlk->nil", E, P, E) \
+        + (ray_var * np.sum(d**2, axis=1))[:, None, None] * np.eye(2)
+    return np.einsum("ni,nij,nj->n", r, _inv2(S), r)
 
 
 class ViewWindow:
@@ -226,6 +317,15 @@ class ViewWindow:
                                 np.asarray(xy, float).reshape(-1, 2).copy()))
         self.views = [v for v in self.views if t - v.time <= p.span_s]
 
+    def solved(self) -> SolvedViews:
+        """The views as of the last solve (``SolvedViews``; a view added since has no
+        rotation variance yet and is not used)."""
+        v = self.views
+        return SolvedViews(np.array([x.time for x in v], float).reshape(-1),
+                           np.array([x.C_solved for x in v], float).reshape(-1, 3, 3),
+                           np.array([x.camera_position_ned for x in v], float).reshape(-1, 3),
+                           np.array([x.rotation_var for x in v], float).reshape(-1))
+
     def due(self, t: float) -> bool:
         return t - self._last_solve >= self.params.solve_interval_s and len(self.views) >= 3
 
@@ -272,11 +372,11 @@ class ViewWindow:
                                     by_view, xy, sigma, self.focal, p.huber_px)
             C[few] = prior[few]
             H[few] = prior_info[few]
-        for v, c in zip(self.views, C, strict=True):
-            v.C_solved = c
         # Each ray's angular variance: the pixel noise plus what is left of its view's
         # rotation uncertainty (small with many landmarks, the fused one with few).
         rotation_var = np.trace(np.linalg.inv(H), axis1=1, axis2=2) / 3.0
+        for v, c, var in zip(self.views, C, rotation_var, strict=True):
+            v.C_solved, v.rotation_var = c, float(var)
         X, A = _triangulate_rays(C, centre, view_of, point_of, by_point, xy, X,
                                  1.0 / (sigma**2 + rotation_var[view_of]), x_prior, info_prior)
         return ids, X, np.linalg.inv(A + 1e-9 * np.eye(3))

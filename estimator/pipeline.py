@@ -87,7 +87,7 @@ from .frames import (
     rotvec_to_dcm,
 )
 from .ins import Ins, InsState, calibration_matrices
-from .landmarks import LandmarkMap, LandmarkParams, camera_pose_covariance
+from .landmarks import LandmarkMap, LandmarkParams, SolvedViews, camera_pose_covariance
 from .records import Calibration, GnssEpoch, NavigationData
 from .spp import standalone_position
 from .vo import VisualOdometry, VoOutput
@@ -432,6 +432,12 @@ class Fusion:
         return FusionStatus(phase=phase, compass_fixed=fixed,
                             satellites=self._n_sats, vo_status=self._vo_status, scale=scale,
                             scale_converged=converged, message=self._message)
+
+    def solved_views(self) -> SolvedViews | None:
+        """The landmark window's views with their solved attitudes (``SolvedViews``), for
+        the designated targets; None without the joint refinement."""
+        lm = self.landmarks
+        return None if lm is None or lm.window is None else lm.window.solved()
 
     def structure(self, refined: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Port-structure points in L, their 1-σ (m), ids. Without ``refined``: the VO points

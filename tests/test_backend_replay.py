@@ -101,6 +101,9 @@ class SumEngine:
     def structure(self):
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int)
 
+    def solved_views(self) -> None:
+        return None
+
     def timing(self) -> dict:
         return {}
 

@@ -108,6 +108,9 @@ class ReferenceEngine:
         pts = self.rec.scene_points - (self.origin if self.origin is not None else 0.0)
         return pts, np.full(len(pts), 0.05), np.arange(len(pts))
 
+    def solved_views(self) -> None:
+        return None
+
     def timing(self) -> dict:
         return {}
 
@@ -346,6 +349,9 @@ def test_designate_targets_and_berth_line(live: Live, replayed: dict):
         assert quay["method"] == "structure" and quay["support_points"] >= 1
         assert quay["frame_time"] == pytest.approx(last["t"], abs=1e-3)
         assert quay["distance_m"] == pytest.approx(points["distance_m"][k], rel=0.3)
+        # tracked back through the frames before the click and triangulated at once in the
+        # views the structure window solved (the real engine's)
+        assert quay["views"] >= 10, quay
         water = client.post(f"{base}/targets", json={"u": 480, "v": 590}).json()
         assert water["method"] == "water-plane"
         plane = last["overlay"]["video"]["grid"]["plane_down_m"]

@@ -9,10 +9,14 @@ run of the evaluation on the simulated test recording.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import cv2
 import numpy as np
 import pytest
 
 from estimator.frames import rot_z
+from estimator.landmarks import SolvedViews
 from estimator.records import CameraCalibration
 from estimator.tracking import (
     DesignatedTarget,
@@ -217,7 +221,7 @@ def test_designated_target_locks_its_distance_and_reacquires(along_path):
     states = []
     for k in range(1, N_FRAMES):
         img = seq.images[k] if k != 12 else np.zeros_like(seq.images[k])
-        states.append(tgt.update(img, *seq.poses[k], pose_cov))
+        states.append(tgt.update(T0 + 0.1 * k, img, *seq.poses[k], pose_cov))
     assert states[11].status == "lost" and states[11].uv is None  # the blank frame
     assert states[12].status == "tracking"
     tracked = [s for s in states if s.status == "tracking"]
@@ -228,7 +232,7 @@ def test_designated_target_locks_its_distance_and_reacquires(along_path):
     assert states[-1].distance_sigma_m < 0.5 * np.linalg.norm(point - p)
     assert states[-1].views == len(tracked)
     # a seek back to frame 5: resumed from the projection of the 3-D point
-    back = tgt.resume(seq.images[5], *seq.poses[5], pose_cov)
+    back = tgt.resume(T0 + 0.5, seq.images[5], *seq.poses[5], pose_cov)
     assert back.status == "tracking" and back.reacquired
     assert np.linalg.norm(back.uv - truth[5]) < 2.0
 
@@ -250,7 +254,7 @@ def test_designated_target_reanchors_on_converged_structure(along_path):
         tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None, C0, p0,
                                params=TargetParams(), seed=0, refine=refine)
         C, p = seq.poses[1]
-        tgt.update(seq.images[1], C, p)
+        tgt.update(T0 + 0.1, seq.images[1], C, p)
         uv = project_points(around, C, p, seq.cam)[0]
         done = tgt.reanchor(around, np.full(len(around), sigma), uv, C, p)
         results[name] = (done, np.linalg.norm(tgt.position_ned - point))
@@ -258,6 +262,117 @@ def test_designated_target_reanchors_on_converged_structure(along_path):
     assert results["converged"][0] and results["converged"][1] < 0.1 < 0.5 * d0
     assert not results["converging"][0] and results["converging"][1] > 0.5 * d0
     assert not results["water-plane"][0] and results["water-plane"][1] > 0.5 * d0
+
+
+def solved_views(seq: Sequence, times: np.ndarray, rotation_sigma: float = 1e-5
+                 ) -> SolvedViews:
+    """The sequence's true poses as the structure window's solved views."""
+    return SolvedViews(np.asarray(times, float), np.array([C for C, _ in seq.poses]),
+                       np.array([p for _, p in seq.poses]),
+                       np.full(len(times), rotation_sigma**2))
+
+
+def test_target_tracked_back_and_triangulated_in_the_solved_views(along_path):
+    """Clicked on the last frame with its 3-D point 15 % too far along the ray: the click's
+    template, tracked back through the earlier frames, gives their views (on the true pixel
+    path); triangulated in the solved attitudes they bring the distance to the truth at
+    once. Without earlier frames there is nothing to triangulate from yet."""
+    seq, point = along_path
+    times = T0 + 0.1 * np.arange(N_FRAMES)
+    truth = seq.truth(point)
+    C, p = seq.poses[-1]
+    start = p + 1.15 * (point - p)
+    d_true = np.linalg.norm(point - p)
+    tgt = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None, C, p,
+                           params=TargetParams(), seed=0, t=times[-1],
+                           earlier_frames=list(zip(times[:-1], seq.images[:-1], strict=True)))
+    assert len(tgt.seen) == N_FRAMES  # every earlier frame tracked back, and the click
+    np.testing.assert_allclose(tgt.seen.t, times)
+    K, dist = np.asarray(seq.cam.K, float), np.asarray(seq.cam.distortion, float)
+    xy_true = cv2.undistortPoints(truth.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
+    assert np.max(np.linalg.norm(tgt.seen.xy - xy_true, axis=1)) * K[0, 0] < 1.0  # px
+    views = solved_views(seq, times)
+    assert tgt.refine(views) == N_FRAMES and tgt.refined
+    # 1.7 m of baseline, mostly along the line of sight, at 18 m: σ along the ray ~1 m
+    err = abs(np.linalg.norm(tgt.position_ned - p) - d_true)
+    state = tgt.update(times[-1] + 0.1, seq.images[-1], C, p)
+    assert err < 0.3 * 0.15 * d_true and err < 2 * state.distance_sigma_m, err
+    lone = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None, C, p,
+                            params=TargetParams(), seed=0, t=times[-1])
+    assert lone.refine(views) == 0 and not lone.refined
+    np.testing.assert_allclose(lone.position_ned, start)
+    # a water-plane target (refine=False) is never moved
+    water = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None, C, p, seed=0,
+                             t=times[-1], refine=False,
+                             earlier_frames=list(zip(times[:-1], seq.images[:-1], strict=True)))
+    assert len(water.seen) == 0 and water.refine(views) == 0
+
+
+def test_refined_target_ignores_the_fused_heading_wander(along_path):
+    """The fused heading drifts by 0.1° over the 3 s (between two corrections of the GNSS
+    compass); the window's solved attitudes do not. The target's landmark EKF on the fused
+    views reads the drift as parallax (1 m off at 18 m); triangulated in the solved views
+    (about once a second) the point is several times closer, and the fused views between
+    two refinements only check it."""
+    seq, point = along_path
+    times = T0 + 0.1 * np.arange(N_FRAMES)
+    truth = seq.truth(point)
+    C0, p0 = seq.poses[0]
+    start = p0 + 1.15 * (point - p0)
+    pose_cov = np.diag([1e-6] * 3 + [np.radians(0.05) ** 2] * 3)
+    drift = np.radians(0.1) * np.arange(N_FRAMES) / N_FRAMES
+    fused = [(C @ rot_z(a), p) for (C, p), a in zip(seq.poses, drift, strict=True)]
+    # the tracker's pixel noise on these renderings (0.1 px measured), with a margin
+    params = TargetParams(landmark=replace(TargetParams().landmark, pixel_sigma_px=0.3))
+    ekf_only, refined = (DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None,
+                                          *fused[0], pose_cov, params=params, seed=0,
+                                          t=times[0]) for _ in range(2))
+    views = solved_views(seq, times)
+    for k in range(1, N_FRAMES):
+        for tgt in (ekf_only, refined):
+            tgt.update(times[k], seq.images[k], *fused[k], pose_cov)
+        if k == 10:
+            assert refined.refine(views) == 11
+            kept = refined.position_ned
+        if k == N_FRAMES - 1:
+            np.testing.assert_allclose(refined.position_ned, kept)  # checked, not moved
+            assert refined.refine(views) == N_FRAMES
+    p = seq.poses[-1][1]
+    d_true = np.linalg.norm(point - p)
+    err = {name: abs(np.linalg.norm(t.position_ned - p) - d_true)
+           for name, t in (("ekf", ekf_only), ("refined", refined))}
+    assert err["refined"] < 0.25 * err["ekf"] and err["refined"] < 0.15, err
+
+
+def test_triangulation_drops_a_slipped_track():
+    """A point seen from 40 views along a 10 m baseline: exact rays give it back; when the
+    last quarter of the track slipped onto a feature 0.5 m aside, those rays are dropped
+    and the point stays; a view time with no solved view is not used."""
+    rng = np.random.default_rng(4)
+    X = np.array([20.0, 5.0, -2.0])
+    centres = np.column_stack([np.linspace(0, 10, 40), np.zeros(40), np.zeros(40)])
+    C = np.array([rot_z(rng.normal(0, 0.01)).T for _ in range(40)])  # camera = level axes
+
+    def pixels(point: np.ndarray) -> np.ndarray:
+        xc = np.einsum("nij,nj->ni", C, point - centres)
+        return xc[:, :2] / xc[:, 2:]
+
+    # a camera looking along +down would see nothing; these look along +z (down): fine for
+    # the geometry, the rays only need a positive depth
+    X = np.array([3.0, 4.0, 20.0])
+    xy = pixels(X)
+    var = np.full(40, (1.0 / 800) ** 2)
+    prior_x, prior_info = X + np.array([0.0, 0.0, 3.0]), np.eye(3) / 25.0
+    from estimator.landmarks import triangulate_point
+    est, info, used = triangulate_point(C, centres, xy, var, prior_x, prior_info)
+    assert used.all() and np.linalg.norm(est - X) < 1e-3
+    slipped = xy.copy()
+    slipped[30:] = pixels(X + np.array([0.5, 0.0, 0.0]))[30:]
+    est, _info, used = triangulate_point(C, centres, slipped, var, prior_x, prior_info)
+    assert not used[30:].any() and used[:30].all() and np.linalg.norm(est - X) < 1e-2
+    views = SolvedViews(np.arange(4.0), C[:4], centres[:4], np.array([1e-8, np.inf, 1e-8, 1e-8]))
+    np.testing.assert_array_equal(views.at(np.array([0.0005, 1.0, 2.5, 3.0, -7.0])),
+                                  [0, -1, -1, 3, -1])
 
 
 def test_nearest_surface_prefers_the_foreground_unless_a_point_is_clicked():

@@ -11,25 +11,28 @@ fig. 10). Pure functions; the replay report (``backend/reports/replay.py``) call
 ``run_fusion`` replays the recording through ``estimator.pipeline.Fusion`` exactly as the
 replay report does (IMU before GNSS before the frame at equal time tags; cached VO outputs are
 fed through ``process_vo``) and keeps what the evaluations need: the fused pose and its
-covariance at every frame, the port structure at the click frames (a target is designated
-from the structure of ITS frame — causal), the landmark estimates when their view count
-reaches the checkpoints, and the last view of every landmark.
+covariance at every frame, the port structure and the structure window's solved views at the
+click frames (a target is designated from the structure of ITS frame — causal) and once a
+second after the first click (as the server refreshes them), the landmark estimates when
+their view count reaches the checkpoints, and the last view of every landmark.
 
 Scoring (the estimator never sees any of this):
 
-- Tracking. A click is the TRUE projection (reference pose + calibration) of a true scene point
-  (``rec.scene_points``) at the click frame: by default quay points (quay edge, fenders,
-  ladders, bollards) 5–30 m from the camera, several clicks spread over the replay. Each is
-  tracked from its frame to the end by the full method (``DesignatedTarget``, exactly what
-  the server runs) and by the two ablations of seed 002's fig. 7, ``template`` (adaptive
-  template matching alone) and ``camshift_pf`` (the CAMSHIFT-guided particle filter alone).
-  Pixel error = tracked point − true projection of the clicked scene point, over the frames
-  where the method reports "tracking" and the point is in the image. An UNDETECTED loss is a
-  frame reported "tracking" more than ``LOSS_PX`` from the truth (or with the point out of
-  the image). Distance error = the target's distance (fused camera → its 3-D point) − the
-  true distance (true camera → the true scene point); tolerance ``max(10 cm, 1 % of the
-  range)``. ``fixed_point`` is the distance of the point designated at the click without any
-  image tracking afterwards (the server's behaviour before the tracker).
+- Tracking. A click is the TRUE projection (reference pose + calibration) of a true scene
+  point (``rec.scene_points``) at the click frame: by default quay points (quay edge,
+  fenders, ladders, bollards) 5–30 m from the camera, several clicks spread over the replay.
+  Each is tracked from its frame to the end by the full method (``DesignatedTarget``,
+  exactly what the server runs: tracked back through the frames before the click, its 3-D
+  point triangulated in the solved views once a second) and by the two ablations of seed
+  002's fig. 7, ``template`` (adaptive template matching alone) and ``camshift_pf`` (the
+  CAMSHIFT-guided particle filter alone). Pixel error = tracked point − true projection of
+  the clicked scene point, over the frames where the method reports "tracking" and the point
+  is in the image. An UNDETECTED loss is a frame reported "tracking" more than ``LOSS_PX``
+  from the truth (or with the point out of the image). Distance error = the target's
+  distance (fused camera → its 3-D point) − the true distance (true camera → the true scene
+  point); tolerance ``max(10 cm, 1 % of the range)``. ``fixed_point`` is the distance of the
+  point designated at the click without any image tracking afterwards (the server's
+  behaviour before the tracker).
 - Landmarks. Where the recording is a simulation whose scene can be rebuilt
   (``manifest.scenario`` / ``seed``, checked against ``scene_points``), the truth of a
   landmark is the rendered true depth at the pixel of its last view (rendered every
@@ -46,6 +49,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -65,8 +69,8 @@ from estimator.tracking import (
 )
 
 LOSS_PX = 10.0  # a "tracking" point farther than this from the truth is an undetected loss
-# The structure is snapshot (and the targets re-anchored on it) every this many frames after
-# the first click: once a second, as the server refreshes it.
+# The structure is snapshot (and the targets re-anchored and refined on it) every this many
+# frames after the first click: once a second, as the server refreshes it.
 REANCHOR_FRAMES = 10
 CLICK_KINDS = ("quay", "fender", "ladder")  # on the quay wall (bollards: see the report)
 CLICK_RANGE_M = (5.0, 30.0)
@@ -110,6 +114,7 @@ class FusionRun:
     C_camera_to_body: np.ndarray
     structure_at: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=dict)  # frame → Fusion.structure() after that frame
+    views_at: dict[int, Any] = field(default_factory=dict)  # frame → Fusion.solved_views()
     structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # final, refined
     structure_raw: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # final, raw
     # ids of the final structure whose landmark has converged (reportable, not converging)
@@ -196,6 +201,7 @@ def run_fusion(rec: Any, vo_outputs: Sequence[Any] | None = None,
             run.position_cov[i], run.attitude_cov[i] = s.position_cov, s.attitude_cov
         if i in snaps:
             run.structure_at[i] = f.structure()
+            run.views_at[i] = f.solved_views()
         lm = f.landmarks
         if lm is not None and len(lm.views):
             views = np.where(lm.alive, lm.views, 0)
@@ -447,10 +453,17 @@ def evaluate_tracking(rec: Any, run: FusionRun, clicks: Sequence[Click] | None =
     if not active:
         return {"clicks": _public(targets), "methods": {}, "reason": "no click could be scored"}
     first = min(t["frame"] for t in active)
+    # The frames a click's template is tracked back through (as the server reads them).
+    n_back = int(np.searchsorted(run.time, run.time[first] - TargetParams.track_back_s))
+    earlier: deque[tuple[float, np.ndarray]] = deque(
+        maxlen=int(math.ceil(TargetParams.track_back_s * FRAME_RATE_HZ)) + 1)
     tic = time.perf_counter()
-    for k, _t, image in rec.frames(first):
+    for k, t_k, image in rec.frames(n_back):
         if k >= n_frames:
             break
+        if k < first:
+            earlier.append((float(t_k), cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)))
+            continue
         pose = run.camera(k)
         C_t, c_t = truth.C_level_to_camera[k], truth.position[k]
         for tg in active:
@@ -471,7 +484,9 @@ def evaluate_tracking(rec: Any, run: FusionRun, clicks: Sequence[Click] | None =
                     if m == DESIGNATED:
                         tg["_objs"][m] = DesignatedTarget(
                             cam, image, np.asarray(tg["uv"]), tg["_X0"], tg["_P0"], C, c, cov,
-                            params=TargetParams(window=window), method="full", seed=seed + k)
+                            params=TargetParams(window=window), method="full", seed=seed + k,
+                            t=float(run.time[k]), earlier_frames=list(earlier))
+                        tg["_objs"][m].refine(run.views_at.get(k))
                     else:
                         tg["_objs"][m] = TargetTracker(method=m, seed=seed + k)
                         tg["_objs"][m].init(image, np.asarray(tg["uv"]), window)
@@ -483,10 +498,11 @@ def evaluate_tracking(rec: Any, run: FusionRun, clicks: Sequence[Click] | None =
                 C, c, cov = pose
                 t0 = time.perf_counter()
                 if m == DESIGNATED:
-                    st = obj.update(image, C, c, cov)
-                    if k in run.structure_at:  # the structure refreshed: re-anchor on it
+                    st = obj.update(float(run.time[k]), image, C, c, cov)
+                    if k in run.structure_at:  # the structure refreshed: re-anchor, refine
                         pts, sig, _ids = run.structure_at[k]
                         obj.reanchor(pts, sig, _project(cam, C, c, pts)[0], C, c)
+                        obj.refine(run.views_at.get(k))
                     uv_est, tracking, reacq = st.uv, st.status == "tracking", st.reacquired
                     d_err, d_sig = st.distance_m - d_true, st.distance_sigma_m
                     guess = obj.tracker.uv
@@ -505,6 +521,7 @@ def evaluate_tracking(rec: Any, run: FusionRun, clicks: Sequence[Click] | None =
                 tg["_series"][m].append((k, tracking, in_view, err, d_err, d_true,
                                          d_fixed - d_true, reacq, err_any,
                                          (k - tg["frame"]) / FRAME_RATE_HZ, d_sig))
+        earlier.append((float(t_k), cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)))
         if progress is not None and k % 100 == 0:
             progress(f"tracking evaluation: frame {k}/{n_frames}")
     wall = time.perf_counter() - tic
