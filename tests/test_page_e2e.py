@@ -392,6 +392,11 @@ def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
     assert t1["distance_m"] > 5
     page.wait_for_selector("#targets li[data-id]")
     assert re.search(r"\d+\.\d m", page.locator("#targets li[data-id] .tdist").inner_text())
+    # with its 1-σ, as the stream gives it
+    sub = page.locator("#targets li[data-id] .tsub").inner_text()
+    sigma = re.search(r"±(\d+\.\d\d) m", sub)
+    assert sigma and t1["distance_sigma_m"] is not None, sub
+    assert abs(float(sigma.group(1)) - t1["distance_sigma_m"]) < 0.2 * t1["distance_sigma_m"] + 0.02
     shot(page, "04_target_designated")
 
     # frames later the label is still there, on the same quay point, with a new distance

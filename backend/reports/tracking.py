@@ -13,8 +13,9 @@ replay report does (IMU before GNSS before the frame at equal time tags; cached 
 fed through ``process_vo``) and keeps what the evaluations need: the fused pose and its
 covariance at every frame, the port structure and the structure window's solved views at the
 click frames (a target is designated from the structure of ITS frame — causal) and once a
-second after the first click (as the server refreshes them), the landmark estimates when
-their view count reaches the checkpoints, and the last view of every landmark.
+second after the first click (as the server refreshes them), the landmark estimates as
+reported (the joint window's where it has one) when their view count reaches the
+checkpoints, and the last view of every landmark.
 
 Scoring (the estimator never sees any of this):
 
@@ -119,6 +120,8 @@ class FusionRun:
     structure_raw: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # final, raw
     # ids of the final structure whose landmark has converged (reportable, not converging)
     converged_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    # checkpoint → (ids, positions as reported: the joint window's where it has one) of the
+    # landmarks reaching that many views
     view_history: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     last_views: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
     timing_ms: dict[str, float] = field(default_factory=dict)
@@ -210,7 +213,7 @@ def run_fusion(rec: Any, vo_outputs: Sequence[Any] | None = None,
             for c in VIEW_CHECKPOINTS:
                 hit = np.flatnonzero((prev < c) & (views >= c))
                 if len(hit):
-                    history[c].append((lm.ids[hit].copy(), lm.x[hit].copy()))
+                    history[c].append((lm.ids[hit].copy(), lm.best(hit)[0]))
             prev_views = views
         if i % TRUTH_STRIDE == 0:
             for pid, uv in zip(*out.observations, strict=True):
@@ -844,6 +847,9 @@ def format_tracking_report(tracking: dict[str, Any], landmarks: dict[str, Any] |
                              f"{f(w['xyz_median_m'], '.3f')} m ({w['points']} points); "
                              f"last seen at 10–30 m: {f(b['xyz_median_m'], '.3f')} m "
                              f"({b['points']})")
+        if landmarks.get("error_vs_views_same_landmarks"):
+            lines.append("  reported position (the joint window's where it has one) as the "
+                         "views accumulate:")
         for row in landmarks.get("error_vs_views_same_landmarks", []):
             lines.append(f"  after {row['views']:4d} views: depth error median "
                          f"{row['depth_median_m']:.3f} m, {100 * row['relative_depth_median']:.1f}"
