@@ -421,6 +421,10 @@ def evaluate_tracking(rec: Any, run: FusionRun, clicks: Sequence[Click] | None =
         return {"reason": "no reference trajectory or no scene points to score against"}
     if clicks is None:
         clicks = default_clicks(rec)
+    if not clicks:
+        return {"clicks": [], "methods": {},
+                "reason": f"no quay point {CLICK_RANGE_M[0]:g}–{CLICK_RANGE_M[1]:g} m from the "
+                          "camera in view at the click times"}
     truth = _truth(rec, run)
     cam = rec.calibration.camera
     W, H = int(cam.width), int(cam.height)
@@ -807,6 +811,9 @@ def format_tracking_report(tracking: dict[str, Any], landmarks: dict[str, Any] |
 
     def f(x: Any, spec: str = ".2f") -> str:
         return "–" if x is None else format(x, spec)
+
+    if not tracking.get("methods"):
+        lines.append(f"  not evaluated: {tracking.get('reason') or 'no click could be scored'}")
 
     for m, s in tracking.get("methods", {}).items():
         pe = s["pixel_error"]
