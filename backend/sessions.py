@@ -805,8 +805,8 @@ class Session:
         (``DesignatedTarget.reanchor``, ``refine``; lock held)."""
         pts, sigma, _ids = self._structure
         t = self._structure_t
-        if t is None or t - target.reanchored_t < REANCHOR_INTERVAL_S:
-            return
+        if t is None or 0.0 <= t - target.reanchored_t < REANCHOR_INTERVAL_S:
+            return  # (a structure older than the last one: the replay went back, go on)
         target.reanchored_t = t
         if len(pts):
             _visible, uv = self.projector.project_points(CameraPose(C, c), pts)
