@@ -445,7 +445,8 @@ class Fusion:
         landmark (``LandmarkMap.classify``: enough views and parallax, views that agree,
         above the water) gives its refined position, its σ the RMS per axis of its covariance;
         a rejected one (water patterns, reflections, mistracks) is
-        left out; one still converging keeps the VO point with the larger of the two σ."""
+        left out; one still converging keeps the VO point with the larger of the two σ, and is
+        left out when that σ exceeds its range."""
         ids, pts, sig = [], [], []
         for pid, p in self._frozen.items():
             ids.append(pid)
@@ -472,7 +473,17 @@ class Fusion:
             pts_a[ok] = x_lm[ok[have]]
             # Reportable: the landmark's σ; still converging: the larger of the two.
             sig_a[have] = np.where(ok[have], sig_lm, np.maximum(sig_a[have], sig_lm))
-            keep = ~rejected
+            # A point whose σ exceeds its range (from the camera that last saw it, else the
+            # current one) says nothing of where it is (a far VO point re-triangulated near, a
+            # reflection): left out.
+            seen_from = lm.last_camera[rows[have]]
+            unseen = ~np.isfinite(seen_from).all(axis=1)
+            if ekf is not None:
+                seen_from[unseen] = ekf.camera_position()
+            vague = np.zeros(len(ids_a), bool)
+            with np.errstate(invalid="ignore"):  # no camera at all: NaN, kept
+                vague[have] = sig_a[have] > np.linalg.norm(pts_a[have] - seen_from, axis=1)
+            keep = ~rejected & ~vague
             return pts_a[keep], sig_a[keep], ids_a[keep]
         return pts_a, sig_a, ids_a
 

@@ -276,8 +276,8 @@ def test_only_trustworthy_landmarks_are_reported(scene):
 
 def test_fusion_structure_uses_refined_landmarks():
     """``Fusion.structure()`` swaps in the refined point of every reportable landmark, leaves
-    out the rejected ones and keeps the VO point of those still converging (the raw VO points
-    with ``refined=False``)."""
+    out the rejected ones and keeps the VO point of those still converging — unless its σ
+    exceeds its range (the raw VO points with ``refined=False``)."""
     from estimator.pipeline import Fusion, FusionOptions
     from estimator.records import Calibration, ImuCalibration, NavigationData
     from recordings.sim.scenarios import SMALL_BOAT
@@ -295,9 +295,13 @@ def test_fusion_structure_uses_refined_landmarks():
     f._frozen_sigma[3] = 0.5
     f.landmarks.seed(np.array([3]), np.array([[14.0, 2.0, -1.0]]), np.eye(3)[None] * 0.01)
     f.landmarks.alive[f.landmarks.lookup([3])] = False  # dropped by its gate: rejected
+    # 4: a VO point 6 m from the camera whose landmark is still 20 m uncertain: no information
+    f._frozen[4], f._frozen_sigma[4] = np.array([6.0, 0.0, -1.0]), 0.2
+    f.landmarks.seed(np.array([4]), np.array([[30.0, 0.0, -1.0]]), np.eye(3)[None] * 400.0)
+    f.landmarks.last_camera[f.landmarks.lookup([4])] = 0.0
     pts, sig, ids = f.structure()
     raw, _sig, raw_ids = f.structure(refined=False)
-    np.testing.assert_array_equal(raw_ids, [1, 2, 3])
+    np.testing.assert_array_equal(raw_ids, [1, 2, 3, 4])
     np.testing.assert_array_equal(ids, [1, 2])  # 1 has no landmark yet: its VO point
     np.testing.assert_allclose(pts[1], [12.5, 1.0, -1.0])
     np.testing.assert_allclose(raw[1], [12.0, 1.0, -1.0])
