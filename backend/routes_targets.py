@@ -76,7 +76,7 @@ def _target_out(session: Session, target: Target) -> dict:
         "reason": target.reason,
         "distance_sigma_m": None if target.distance_sigma_m is None else round(
             float(target.distance_sigma_m), 3),
-        "views": target.views,
+        "views": 0 if target.tracker is None else target.tracker.refined_views,
     }
 
 

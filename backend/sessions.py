@@ -69,9 +69,9 @@ JPEG_QUALITY = 80
 FRAME_BUFFER = 30  # recent frames kept (3 s): a click on a frame just shown, catch-up
 TARGET_WINDOW_PX = 31  # template side of the image tracker, full-size pixels
 FRAME_MATCH_S = 0.06  # a frame_time matches a stored frame within this (frames are 0.1 s apart)
-# A target's 3-D point is re-anchored on the structure / triangulated in the structure's
-# solved views this often.
-REANCHOR_INTERVAL_S = 1.0
+# A target is refreshed on the structure (re-anchored, triangulated in its solved views) this
+# often.
+TARGET_REFRESH_S = 1.0
 
 
 # ------------------------------------------------------------------------------- errors
@@ -247,8 +247,7 @@ class Target:
     score: float | None = None
     reason: str = ""
     distance_sigma_m: float | None = None  # 1-σ of the distance from the 3-D point's covariance
-    reanchored_t: float = -math.inf  # structure time the 3-D point was last re-anchored on
-    views: int = 0  # tracked views its 3-D point was last triangulated from (``refine``)
+    refreshed_t: float = -math.inf  # structure time the target was last refreshed on
 
 
 @dataclass
@@ -750,8 +749,7 @@ class Session:
                 self.rec.calibration.camera, image, np.array(target.uv), target.position_ned,
                 cov, C, c, pose_cov, params=TargetParams(window=window),
                 refine=target.method == "structure", t=float(state.time),
-                earlier_frames=earlier)
-            target.views = target.tracker.refine(self._views)
+                earlier_frames=earlier, views=self._views)
             target.position_ned = target.tracker.position_ned
         except Exception as exc:  # no image tracking: the target keeps its 3-D point, lost
             log.exception("the image tracker of target %s could not start", target.id)
@@ -791,7 +789,7 @@ class Session:
             target.frame_index = -2
             return
         target.frame_index = index
-        self._reanchor(target, C, c)
+        self._refresh(target, C, c)
         target.position_ned = tr.position_ned
         target.status = st.status
         target.tracked_uv = None if st.uv is None else (float(st.uv[0]), float(st.uv[1]))
@@ -799,19 +797,16 @@ class Session:
         target.reason = st.reason
         target.distance_sigma_m = st.distance_sigma_m
 
-    def _reanchor(self, target: Target, C: np.ndarray, c: np.ndarray) -> None:
-        """Re-anchor a target's 3-D point on the structure around its tracked pixel and
-        triangulate it in the structure's solved views, at most once a second
-        (``DesignatedTarget.reanchor``, ``refine``; lock held)."""
+    def _refresh(self, target: Target, C: np.ndarray, c: np.ndarray) -> None:
+        """A target's 3-D point from the latest structure, at most once a second
+        (``DesignatedTarget.refresh``; lock held)."""
         pts, sigma, _ids = self._structure
         t = self._structure_t
-        if t is None or 0.0 <= t - target.reanchored_t < REANCHOR_INTERVAL_S:
+        if t is None or 0.0 <= t - target.refreshed_t < TARGET_REFRESH_S:
             return  # (a structure older than the last one: the replay went back, go on)
-        target.reanchored_t = t
-        if len(pts):
-            _visible, uv = self.projector.project_points(CameraPose(C, c), pts)
-            target.tracker.reanchor(pts, sigma, uv, C, c)
-        target.views = target.tracker.refine(self._views) or target.views
+        target.refreshed_t = t
+        _visible, uv = self.projector.project_points(CameraPose(C, c), pts)
+        target.tracker.refresh(pts, sigma, uv, C, c, self._views)
 
     def _update_targets(self, state: Any, index: int, image: np.ndarray) -> None:
         """Track every target in the new frame and extend the tracks (lock held)."""

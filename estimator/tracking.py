@@ -710,7 +710,7 @@ class DesignatedTarget:
     """A clicked point: its image track (``TargetTracker``) and its 3-D point, one landmark
     EKF (``estimator.landmarks``) fed with every tracked view and the fused camera pose. The
     3-D point keeps improving as the ship moves, by two means called as the port structure
-    is refreshed (about once a second):
+    is refreshed (``refresh``, about once a second):
 
     - ``reanchor`` (until ``refine`` has done it once): the converged structure points
       around the tracked pixel give it again;
@@ -730,7 +730,8 @@ class DesignatedTarget:
     ``position_ned``/``covariance``: the point under the click (port-structure points near it,
     or the water plane) in the frame ``image`` (time ``t``) with the camera pose of that
     frame. ``earlier_frames``: (time, image) of the frames before it, oldest first (gray
-    images will do); those within ``TargetParams.track_back_s`` are used."""
+    images will do); those within ``TargetParams.track_back_s`` are used. ``views``: the
+    structure window's solved views as of the click (refined at once)."""
 
     def __init__(self, camera: CameraCalibration, image: np.ndarray, uv: np.ndarray,
                  position_ned: np.ndarray, covariance: np.ndarray | None,
@@ -738,7 +739,8 @@ class DesignatedTarget:
                  pose_cov: np.ndarray | None = None, params: TargetParams | None = None,
                  method: str = "full", tracker_params: TrackerParams | None = None,
                  seed: int | None = None, refine: bool = True, t: float = math.nan,
-                 earlier_frames: Sequence[tuple[float, np.ndarray]] = ()) -> None:
+                 earlier_frames: Sequence[tuple[float, np.ndarray]] = (),
+                 views: SolvedViews | None = None) -> None:
         self.camera = camera
         self.refines = refine  # False: the 3-D point stays (a water-plane point: water moves)
         self.params = params or TargetParams()
@@ -755,7 +757,7 @@ class DesignatedTarget:
             raise ValueError("the designated point or its covariance is not finite")
         self.click_point = (X.copy(), P.copy())  # the prior ``refine`` starts from
         self.click_time = float(t)  # views nearest it are trusted first (``refine``)
-        self.refined = False  # the point is the last ``refine``'s
+        self.refined_views = 0  # views of the last ``refine`` (0: the point is not refined)
         self.seen = _SeenViews()
         if refine and math.isfinite(t):
             self._track_back(image, np.asarray(uv, float), t, earlier_frames)
@@ -764,6 +766,11 @@ class DesignatedTarget:
         self.disagreements = 0
         self.status = "tracking"
         self.reacquisitions = 0
+        self.refine(views)
+
+    @property
+    def refined(self) -> bool:
+        return self.refined_views > 0
 
     @property
     def position_ned(self) -> np.ndarray:
@@ -849,6 +856,16 @@ class DesignatedTarget:
                            reason=reason if uv is None or reacquired else "",
                            reacquired=reacquired)
 
+    def refresh(self, points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
+                C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                views: SolvedViews | None) -> None:
+        """The port structure was refreshed (points, σ, their pixels in this frame; the
+        window's solved views): ``reanchor`` on it, then ``refine`` in its views."""
+        if len(points_ned):
+            self.reanchor(points_ned, sigma_m, uv_points, C_level_to_camera,
+                          camera_position_ned)
+        self.refine(views)
+
     def reanchor(self, points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
                  C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray) -> bool:
         """Take the 3-D point again from the port structure (points, σ, their pixels in this
@@ -899,7 +916,7 @@ class DesignatedTarget:
         if n < self.params.min_refine_views or not np.isfinite(X).all():
             return 0
         self.map.x[0], self.map.P[0] = X, np.linalg.inv(info)
-        self.refined = True
+        self.refined_views = n
         return n
 
     def _track_back(self, image: np.ndarray, uv: np.ndarray, t: float,

@@ -70,8 +70,8 @@ from estimator.tracking import (
 )
 
 LOSS_PX = 10.0  # a "tracking" point farther than this from the truth is an undetected loss
-# The structure is snapshot (and the targets re-anchored and refined on it) every this many
-# frames after the first click: once a second, as the server refreshes it.
+# The structure is snapshot (and the targets refreshed on it) every this many frames after the
+# first click: once a second, as the server refreshes it.
 REANCHOR_FRAMES = 10
 CLICK_KINDS = ("quay", "fender", "ladder")  # on the quay wall (bollards: see the report)
 CLICK_RANGE_M = (5.0, 30.0)
@@ -492,8 +492,8 @@ def evaluate_tracking(rec: Any, run: FusionRun, clicks: Sequence[Click] | None =
                         tg["_objs"][m] = DesignatedTarget(
                             cam, image, np.asarray(tg["uv"]), tg["_X0"], tg["_P0"], C, c, cov,
                             params=TargetParams(window=window), method="full", seed=seed + k,
-                            t=float(run.time[k]), earlier_frames=list(earlier))
-                        tg["_objs"][m].refine(run.views_at.get(k))
+                            t=float(run.time[k]), earlier_frames=list(earlier),
+                            views=run.views_at.get(k))
                     else:
                         tg["_objs"][m] = TargetTracker(method=m, seed=seed + k)
                         tg["_objs"][m].init(image, np.asarray(tg["uv"]), window)
@@ -506,10 +506,10 @@ def evaluate_tracking(rec: Any, run: FusionRun, clicks: Sequence[Click] | None =
                 t0 = time.perf_counter()
                 if m == DESIGNATED:
                     st = obj.update(float(run.time[k]), image, C, c, cov)
-                    if k in run.structure_at:  # the structure refreshed: re-anchor, refine
+                    if k in run.structure_at:  # the structure refreshed
                         pts, sig, _ids = run.structure_at[k]
-                        obj.reanchor(pts, sig, _project(cam, C, c, pts)[0], C, c)
-                        obj.refine(run.views_at.get(k))
+                        obj.refresh(pts, sig, _project(cam, C, c, pts)[0], C, c,
+                                    run.views_at.get(k))
                     uv_est, tracking, reacq = st.uv, st.status == "tracking", st.reacquired
                     d_err, d_sig = st.distance_m - d_true, st.distance_sigma_m
                     guess = obj.tracker.uv
