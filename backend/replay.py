@@ -1,10 +1,7 @@
 """Replay of a recording through a fusion engine, exactly as a live feed would deliver it.
 
-``sensor_messages`` merges the recording's streams into one time-ordered sequence of sensor
-messages: IMU samples, GNSS epochs of the four receivers grouped by their (common-clock) time
-tag, and video frames. At equal time tags IMU comes first, then GNSS, then the frame: the
-engine has propagated to ``t`` before it sees a measurement taken at ``t``, as with a live
-feed where the 100 Hz IMU has the smallest latency.
+The recording's streams come as one time-ordered sequence of sensor messages
+(``engine.messages.sensor_messages``).
 
 ``Replayer`` runs the engine on those messages in a background thread (the numerics are
 CPU-bound; the web server's event loop must stay responsive) at real-time pace, at a chosen
@@ -22,7 +19,6 @@ copied). Frames computed while seeking are not sent to clients.
 from __future__ import annotations
 
 import copy
-import heapq
 import logging
 import threading
 import time
@@ -34,89 +30,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from estimator.records import GnssEpoch
+from engine.messages import FrameMessage, GnssMessage, ImuMessage, SensorMessage, sensor_messages
 from recordings.format import Recording
 
 from .engine import FusionEngine
 
 log = logging.getLogger(__name__)
 
-# Priority of the message kinds at equal time tags (see the module docstring).
-_IMU, _GNSS, _FRAME = 0, 1, 2
-GNSS_GROUP_TOLERANCE_S = 1e-3  # receivers on one clock tag the same epoch identically
 MAX_LAG_S = 0.5  # when the engine falls further behind real time, the clock is re-anchored
-
-
-# ------------------------------------------------------------------------ sensor messages
-
-
-@dataclass(frozen=True)
-class ImuMessage:
-    t: float
-    gyro: np.ndarray  # (3,) rad/s, body
-    accel: np.ndarray  # (3,) m/s^2, body
-
-
-@dataclass(frozen=True)
-class GnssMessage:
-    t: float
-    epochs: tuple[GnssEpoch | None, ...]  # one per receiver; None when a receiver missed it
-
-
-@dataclass(frozen=True)
-class FrameMessage:
-    t: float
-    index: int
-    image: np.ndarray  # BGR
-
-
-SensorMessage = ImuMessage | GnssMessage | FrameMessage
-
-
-def group_gnss(rec: Recording) -> list[GnssMessage]:
-    """The receivers' epochs grouped by time tag, in time order (one message per tag)."""
-    receivers = len(rec.gnss)
-    tags: dict[int, list[GnssEpoch | None]] = {}
-    times: dict[int, float] = {}
-    for rx, epochs in enumerate(rec.gnss):
-        for epoch in epochs:
-            key = int(round(epoch.time / GNSS_GROUP_TOLERANCE_S))
-            slot = tags.setdefault(key, [None] * receivers)
-            slot[rx] = epoch
-            times.setdefault(key, epoch.time)
-    out = []
-    for key in sorted(tags):
-        t = times[key]
-        out.append(GnssMessage(t, tuple(tags[key])))
-    return out
-
-
-def sensor_messages(rec: Recording, after: float | None = None) -> Iterator[SensorMessage]:
-    """All sensor messages of ``rec`` in time order, those strictly after ``after`` (gpst)
-    when given. Frames are decoded lazily, one at a time."""
-    lo = -np.inf if after is None else after
-
-    def imu() -> Iterator[tuple[float, int, int, SensorMessage]]:
-        data = rec.imu
-        first = int(np.searchsorted(data.time, lo, side="right"))
-        for i in range(first, len(data.time)):
-            t = float(data.time[i])
-            yield t, _IMU, i, ImuMessage(t, data.gyro[i], data.accel[i])
-
-    def gnss() -> Iterator[tuple[float, int, int, SensorMessage]]:
-        for i, msg in enumerate(group_gnss(rec)):
-            if msg.t > lo:
-                yield msg.t, _GNSS, i, msg
-
-    def frames() -> Iterator[tuple[float, int, int, SensorMessage]]:
-        first = int(np.searchsorted(rec.frame_times, lo, side="right"))
-        if first >= len(rec.frame_times):
-            return
-        for index, t, image in rec.frames(first):
-            yield t, _FRAME, index, FrameMessage(t, index, image)
-
-    for _t, _kind, _i, msg in heapq.merge(imu(), gnss(), frames(), key=lambda m: m[:3]):
-        yield msg
 
 
 def snapshot(engine: FusionEngine, shared: tuple[Any, ...] = ()) -> FusionEngine:

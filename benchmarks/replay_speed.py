@@ -39,7 +39,7 @@ DEFAULT_RECORDING = ROOT / "recordings" / "default"
 
 
 def replay_speed(path: Path, seconds: float | None = None) -> dict:
-    from backend.replay import FrameMessage, GnssMessage, ImuMessage, sensor_messages
+    from engine.messages import FrameMessage, GnssMessage, ImuMessage, sensor_messages
     from estimator.pipeline import Fusion
     from recordings.format import load
 

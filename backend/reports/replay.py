@@ -124,7 +124,7 @@ class _Replay:
     """The recording cut to the evaluated span, the VO outputs and the fusion runs."""
 
     def __init__(self, rec: Any, end_s: float | None, progress: _Progress) -> None:
-        from backend.replay import group_gnss
+        from engine.messages import group_gnss
 
         self.rec = rec
         self.progress = progress

@@ -148,7 +148,7 @@ def run_fusion(rec: Any, vo_outputs: Sequence[Any] | None = None,
     """Replay ``rec`` through the fusion (``options``: ``FusionOptions``, default ones) and
     keep what the evaluations need (module docstring). ``vo_outputs``: the VO's outputs per
     frame when already computed (the replay report's ``rp.vo``), else the VO runs here."""
-    from backend.replay import group_gnss
+    from engine.messages import group_gnss
     from estimator.pipeline import Fusion, FusionOptions
     from estimator.vo import VisualOdometry
 
