@@ -46,6 +46,7 @@ from .cpp import (
     SAME_CARRIER_SYSTEMS,
     EpochGeometry,
     detect_cycle_slips,
+    elevation_sigma,
     epoch_geometry,
 )
 from .frames import SPEED_OF_LIGHT, dcm_to_euler, euler_to_dcm, rotvec_to_dcm, wrap_angle
@@ -243,8 +244,7 @@ def double_differences(
     for j in INDEPENDENT:
         for k, s in enumerate(others):
             dd[j - 1, k] = (_sd(epochs, 0, j, s) - _sd(epochs, 0, j, ref))
-    sigma_u = {s: phase_sigma_m / max(math.sin(geometry.satellites[s].elevation), 0.1)
-               for s in sats}
+    sigma_u = {s: elevation_sigma(phase_sigma_m, geometry.satellites[s].elevation) for s in sats}
     rows = [[(0, s, 1.0), (j, s, -1.0), (0, ref, -1.0), (j, ref, 1.0)]
             for j in INDEPENDENT for s in others]
     return DoubleDifferences(time=geometry.time, reference=ref, sats=others, H=H, dd=dd,
@@ -805,7 +805,7 @@ class GnssCompass:
         elif self.delays is not None and sd_sats:
             zetas = self._zetas(epochs, geo, sd_sats)
             los = {s: geo.los_ned(s) for s in sd_sats}
-            sig = {s: self.phase_sigma / max(math.sin(geo.satellites[s].elevation), 0.1)
+            sig = {s: elevation_sigma(self.phase_sigma, geo.satellites[s].elevation)
                    for s in sd_sats}
             att = attitude_from_single_differences(zetas, los, self.antennas, C_prev,
                                                    tilt=imu_tilt, sigma_u=sig)

@@ -155,10 +155,6 @@ def chi2_gate(dof: int, probability: float) -> float:
     return float(chi2.ppf(probability, dof))
 
 
-def _sin_el(elevation: float) -> float:
-    return max(math.sin(elevation), 0.1)
-
-
 # ------------------------------------------------------------------------------ records
 
 

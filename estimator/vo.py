@@ -49,7 +49,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
 from estimator.frames import skew
-from estimator.records import CameraCalibration
+from estimator.records import CameraCalibration, mean_focal
 
 STAGES = ("detect", "track", "pose", "triangulate", "ba")
 
@@ -205,7 +205,7 @@ def relative_pose(pts0: np.ndarray, pts1: np.ndarray, K: np.ndarray, threshold_p
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``relative_pose_normalised`` for undistorted pixel points of a camera with intrinsics K:
     returns (C_0_to_1, unit t^C1, inlier mask) or None."""
-    f = 0.5 * (K[0, 0] + K[1, 1])
+    f = mean_focal(K)
     return relative_pose_normalised(normalise_points(pts0, K), normalise_points(pts1, K),
                                     threshold_px / f, confidence)
 
@@ -534,7 +534,7 @@ class VisualOdometry:
         p = self.params
         self._K = np.asarray(camera.K, float)
         self._dist = np.asarray(camera.distortion, float).ravel()
-        self._focal = 0.5 * (self._K[0, 0] + self._K[1, 1])
+        self._focal = camera.focal_px
         self._size = (int(camera.width), int(camera.height))
         self._orb = cv2.ORB_create(nfeatures=4 * p.n_features, scaleFactor=1.2,
                                    nlevels=p.orb_levels, edgeThreshold=16, patchSize=16,
