@@ -1,4 +1,5 @@
-"""Start-up and alignment of the fusion (thesis 5.2, the INS block's initialisation).
+"""Start-up and alignment of the fusion (thesis 5.1.1: the INS block's initialisation,
+fig. 19).
 
 Before the INS runs, IMU samples are buffered and the GNSS compass (``compass.GnssCompass``) is
 fed every epoch with the accelerometer tilt until it fixes its integers. At the epoch after the

@@ -1,4 +1,4 @@
-"""Relative positioning of two receivers by double differences (thesis 3.2.2, SPEC section 4).
+"""Relative positioning of two receivers by double differences (thesis 3.2.2).
 
 The conventional carrier-phase method: a float Kalman filter over epochs whose states are the
 baseline ``b = r_B − r_A`` (local NED) and one float single-difference ambiguity per satellite,

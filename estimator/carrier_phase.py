@@ -1,7 +1,8 @@
-"""The CPP block inside the fusion, once the INS runs (thesis 5.2.2; SPEC §4): per GNSS epoch
-the time-differenced carrier phase (η rows, or the loose per-receiver velocities ``v``) and the
-single differences ζ with their integers, applied to the EKF; the standalone position only
-anchors the absolute output and aids the EKF when nothing else does.
+"""The CPP block inside the fusion, once the INS runs (thesis 5.1.1, fig. 18, and 5.2.1;
+``METHOD.md``): per GNSS epoch the time-differenced carrier phase (η rows, or the loose
+per-receiver velocities ``v``) and the single differences ζ with their integers, applied to the
+EKF; the standalone position only anchors the absolute output and aids the EKF when nothing
+else does.
 
 The single-difference integers are kept per (receiver, satellite) with an arbitrary offset per
 satellite (N_ij = A_i − A_j); the integer part of the inter-receiver delays is absorbed in the

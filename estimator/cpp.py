@@ -1,4 +1,4 @@
-"""Carrier-phase processing, the CPP block (thesis fig. 18, SPEC section 4).
+"""Carrier-phase processing, the CPP block (thesis 5.1.1, fig. 18; ``METHOD.md``).
 
 From the raw L1 observations of the compass receivers this module produces:
 
@@ -55,7 +55,7 @@ DEFAULT_SLIP_THRESHOLD = 0.5  # cycles/s, Doppler vs phase rate (real data: 0.06
 DEFAULT_PHASE_SIGMA_M = 0.003  # m, undifferenced carrier phase at zenith (noise + multipath)
 DEFAULT_MAX_INTERVAL_S = 5.0  # longest epoch interval over which phase is differenced
 NORMALISED_RESIDUAL_LIMIT = 4.0
-_MIN_SIN_ELEVATION = 0.1
+MIN_SIN_ELEVATION = 0.1
 
 # ----------------------------------------------------------------------------- epochs
 
@@ -161,8 +161,8 @@ def range_with_ephemeris(eph: KeplerEphemeris | GlonassEphemeris, geo: Geometry,
 
 def elevation_sigma(sigma_zenith: float, elevation: float) -> float:
     """σ of a carrier-phase observable at ``elevation`` (rad) from its zenith σ: noise and
-    multipath grow as 1/sin(elevation), floored at ``_MIN_SIN_ELEVATION``."""
-    return sigma_zenith / max(math.sin(elevation), _MIN_SIN_ELEVATION)
+    multipath grow as 1/sin(elevation), floored at ``MIN_SIN_ELEVATION``."""
+    return sigma_zenith / max(math.sin(elevation), MIN_SIN_ELEVATION)
 
 
 # ------------------------------------------------------------------------ cycle slips

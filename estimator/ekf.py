@@ -1,4 +1,5 @@
-"""Error-state EKF of the fusion (thesis 5.1 "EKF block", 5.2 tight coupling; SPEC section 4).
+"""Error-state EKF of the fusion (thesis 5.1 "EKF block", 5.2 tight coupling;
+``METHOD.md``).
 
 State (error = estimate − truth everywhere, as in ``estimator.ins``)::
 

@@ -1,5 +1,5 @@
-"""The VO inside the fusion and the port structure (thesis 5.2.4; SPEC §4 "VO block" and the
-EKF's output).
+"""The VO inside the fusion and the port structure (thesis 5.1.1, figs. 16–17; the
+EKF's output, ``METHOD.md``).
 
 Each VO world (``VoOutput.segment``) is mapped into L once the camera has moved a little since
 its first tracked frame (the first scale is the INS displacement over the VO one); from then on

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.replay import FrameResult, Replayer, ReplayState, dispatch, snapshot
+from backend.replay import FrameResult, Replayer, ReplayState, snapshot
+from engine.driver import dispatch
 from engine.messages import FrameMessage, GnssMessage, ImuMessage, group_gnss, sensor_messages
 from recordings.format import Recording, load
 
