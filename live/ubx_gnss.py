@@ -15,7 +15,9 @@ records with the conventions of the RINEX path (``recordings.rinex.l1_epochs``):
   than the time since the satellite's previous epoch (lost in between), the half-cycle
   correction changed (subHalfCyc toggled: the phase moved by half a cycle), or the receiver
   reset its clock (clkReset); bit 1 (half-cycle ambiguity) while halfCyc is not yet
-  resolved. The first epoch of a satellite carries no slip: there is no earlier phase.
+  resolved. A satellite's first phase is flagged when its lock began after the receiver's
+  previous epoch (a newly acquired signal, as receivers and RTKLIB flag it); at the first
+  epoch of the stream only a lock time of 0 is.
 
 Ephemerides: GPS/QZSS LNAV subframes 1-3 (+ subframe 4 page 18 for the Klobuchar α/β) and
 Galileo I/NAV word types 1-5 become ``KeplerEphemeris`` records (:mod:`live.navmsg`) in a
@@ -48,6 +50,7 @@ from .navmsg import (
     lnav_ephemeris,
 )
 from .streams import ByteStream
+from .ubx_imu import EsfRawDecoder
 
 __all__ = [
     "UBX_SYSTEMS",
@@ -92,6 +95,7 @@ class RawxDecoder:
         self.glonass_slots: dict[str, int] = {}  # "R03" -> frequency number, as seen
         self.leap_seconds: int | None = None  # GPS - UTC when the receiver knows it
         self.skipped_no_time = 0  # epochs before the receiver knew the GPS week
+        self._last_time: float | None = None
 
     def decode(self, msg: UBXMessage) -> GnssEpoch | None:
         """The epoch of a parsed RXM-RAWX message (None before the week is known)."""
@@ -134,13 +138,16 @@ class RawxDecoder:
                 continue
             sats[sat] = SatObservation(pseudorange=pr, carrier_phase=phase,
                                        doppler=float(g("doMes")), snr=float(g("cno")), lli=lli)
+        self._last_time = t
         return GnssEpoch(time=t, satellites=sats, flag=0)
 
     def _lli(self, sat: str, t: float, locktime_ms: int, sub_half: int, clock_reset: bool) -> int:
         prev = self._locks.get(sat)
         self._locks[sat] = _Lock(t, locktime_ms, sub_half)
         if prev is None:
-            return 0
+            # a new arc: flagged when the lock began after this receiver's previous epoch
+            since_ms = 1.0 if self._last_time is None else (t - self._last_time) * 1000.0
+            return 1 if locktime_ms < since_ms else 0
         elapsed_ms = (t - prev.time) * 1000.0
         expected = min(prev.locktime_ms + elapsed_ms, _LOCKTIME_MAX_MS)
         slip = (locktime_ms + _LOCK_TOLERANCE_MS < expected or sub_half != prev.sub_half
@@ -267,7 +274,7 @@ class UbxGnssSource:
     """
 
     def __init__(self, stream: ByteStream, *, assembler: EphemerisAssembler | None = None,
-                 imu: object | None = None, name: str = "receiver"):
+                 imu: EsfRawDecoder | None = None, name: str = "receiver"):
         self.stream = stream
         self.assembler = assembler if assembler is not None else EphemerisAssembler()
         self.imu = imu
@@ -296,9 +303,13 @@ class UbxGnssSource:
                 if self.rawx.leap_seconds is not None and self.assembler.nav.leap_seconds is None:
                     self.assembler.nav.leap_seconds = self.rawx.leap_seconds
                 if self.imu is not None:
-                    self.imu.navigation_epoch(epoch.time)  # type: ignore[attr-defined]
+                    self.imu.navigation_epoch(epoch.time)
                 yield epoch
             elif ident == "RXM-SFRBX":
                 self.assembler.add_sfrbx(msg, self.last_epoch_time)
             elif ident == "ESF-RAW" and self.imu is not None:
-                yield from self.imu.decode(msg)  # type: ignore[attr-defined]
+                yield from self.imu.decode(msg)
+            elif (ident == "NAV-TIMEGPS" and self.imu is not None and msg.towValid
+                  and msg.weekValid):
+                t = gpst_from_week_tow(msg.week, msg.iTOW * 1e-3 + msg.fTOW * 1e-9)
+                self.imu.navigation_epoch(t)
