@@ -46,6 +46,7 @@ class ByteStream:
         self._buf = bytearray()
         self._eof = False
         self.bytes_read = 0
+        self.local_address: tuple[str, int] | None = None  # of a UDP stream's socket
 
     def _fill(self) -> bool:
         """Wait for more data: False at the end of the stream, StreamStalled on a stall."""
@@ -135,7 +136,9 @@ def open_stream(url: str, stall_timeout_s: float = 5.0) -> ByteStream:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind((host or "0.0.0.0", port))
-        return ByteStream(_socket_recv(sock, True), url, stall_timeout_s, sock.close)
+        stream = ByteStream(_socket_recv(sock, True), url, stall_timeout_s, sock.close)
+        stream.local_address = sock.getsockname()[:2]
+        return stream
     if scheme == "serial":
         import serial  # pyserial, only needed for serial ports
 
