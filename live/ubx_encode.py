@@ -13,24 +13,31 @@ does not hold is synthesised so that decoding gives the recording back:
   I/NAV word types 1-5 for Galileo (:mod:`live.navmsg`).
 - ESF-RAW: pyubx2 builds this variable-length message only from a payload, packed by
   :func:`live.ubx_imu.esf_raw_payload`.
+
+:func:`receiver_messages` orders one receiver's messages as a u-blox receiver sends them, so
+that the decoders' assumptions hold: at each epoch first the ESF-RAW batch of the IMU samples
+up to and including the epoch (the decoder dates its newest sample at the epoch, see
+:mod:`live.ubx_imu`: exact when the IMU samples fall on the epochs, as in the recordings),
+then RXM-RAWX, then the SFRBX of the ephemerides in use, rebroadcast every
+``sfrbx_period_s`` (30 s, the LNAV frame period).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from pyubx2 import GET, UBXMessage
 
-from estimator.ephemeris import is_beidou_geo
+from estimator.ephemeris import is_beidou_geo, select_ephemeris
 from estimator.frames import SECONDS_PER_WEEK, week_tow_from_gpst
-from estimator.records import GnssEpoch, KeplerEphemeris
+from estimator.records import GnssEpoch, ImuData, KeplerEphemeris, NavigationData
 
 from .navmsg import inav_words, lnav_subframes
 from .ubx_gnss import GLONASS_FREQ_ID_OFFSET, UBX_GNSS_IDS
-from .ubx_imu import esf_raw_payload
+from .ubx_imu import STTAG_TICK_S, esf_raw_payload
 
-__all__ = ["RawxEncoder", "sfrbx_messages", "esf_raw_message"]
+__all__ = ["RawxEncoder", "sfrbx_messages", "esf_raw_message", "receiver_messages"]
 
 _LOCKTIME_MAX_MS = 64500
 
@@ -110,3 +117,49 @@ def esf_raw_message(tags: Sequence[int], gyro: Sequence[Sequence[float]],
     """UBX-ESF-RAW bytes of IMU samples (rad/s, m/s²) at sensor time tags ``tags``."""
     return UBXMessage("ESF", "ESF-RAW", GET,
                       payload=esf_raw_payload(tags, gyro, accel)).serialize()
+
+
+_ESF_BATCH = 10  # samples per ESF-RAW message (as a u-blox receiver at 100 Hz sends them)
+
+
+def receiver_messages(epochs: Sequence[GnssEpoch], nav: NavigationData, *,
+                      imu: ImuData | None = None, glonass_slots: dict[str, int] | None = None,
+                      leap_seconds: int = 18, sfrbx_period_s: float = 30.0
+                      ) -> Iterator[tuple[float, bytes]]:
+    """(gpst due, message bytes) of one receiver's UBX stream, in sending order.
+
+    ``epochs``: the receiver's observation epochs; ``nav``: the ephemerides broadcast (GPS,
+    QZSS LNAV and Galileo I/NAV of the satellites observed; other systems are not encoded);
+    ``imu``: samples sent as ESF-RAW in the same stream (a u-blox sensor-fusion receiver).
+    """
+    rawx = RawxEncoder(glonass_slots, leap_seconds)
+    # what is broadcast: LNAV records, and the I/NAV ones of Galileo (not F/NAV: E5a only)
+    broadcast = NavigationData(ephemerides={
+        sat: [e for e in records if isinstance(e, KeplerEphemeris)
+              and (sat[0] != "E" or e.data_source & 1)]
+        for sat, records in nav.ephemerides.items() if sat[0] in "GJE"})
+    iono = ((nav.iono_alpha, nav.iono_beta) if nav.iono_alpha is not None
+            and nav.iono_beta is not None else None)
+    k_imu = 0
+    tag0 = epochs[0].time if epochs else 0.0
+    last_broadcast = -math.inf
+    for epoch in epochs:
+        t = epoch.time
+        if imu is not None:
+            end = k_imu
+            while end < len(imu.time) and imu.time[end] <= t + 1e-9:
+                end += 1
+            for a in range(k_imu, end, _ESF_BATCH):
+                b = min(a + _ESF_BATCH, end)
+                tags = [round((float(x) - tag0) / STTAG_TICK_S) for x in imu.time[a:b]]
+                yield float(imu.time[b - 1]), esf_raw_message(tags, imu.gyro[a:b],
+                                                              imu.accel[a:b])
+            k_imu = end
+        yield t, rawx.encode(epoch)
+        if t - last_broadcast >= sfrbx_period_s - 1e-6:
+            last_broadcast = t
+            for sat in sorted(epoch.satellites):
+                eph = select_ephemeris(broadcast, sat, t)
+                if isinstance(eph, KeplerEphemeris):
+                    for msg in sfrbx_messages(eph, t, iono=iono if sat[0] == "G" else None):
+                        yield t, msg
