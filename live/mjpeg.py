@@ -17,6 +17,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import cv2
 import numpy as np
 
+from recordings.format import Recording
+
 __all__ = ["MjpegServer"]
 
 BOUNDARY = "berthingaidframe"
@@ -72,6 +74,14 @@ class MjpegServer:
         self.address = self._httpd.server_address[:2]
         self.url = f"http://{self.address[0]}:{self.address[1]}/stream.mjpg"
         self._threads: list[threading.Thread] = []
+
+    @classmethod
+    def for_recording(cls, rec: Recording, start: int = 0, *, host: str = "127.0.0.1",
+                      port: int = 0, quality: int = 90, speed: float = 1.0) -> MjpegServer:
+        """A server of a recording's video from frame ``start``."""
+        def frames() -> Iterator[tuple[float, np.ndarray]]:
+            return ((t, image) for _, t, image in rec.frames(start))
+        return cls(frames, host=host, port=port, quality=quality, speed=speed)
 
     def _next_frame(self, last: int) -> tuple[int, float, bytes] | None:
         with self._cond:

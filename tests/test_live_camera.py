@@ -27,8 +27,8 @@ N_SERVED = 25  # 2.5 s of 10 fps video
 
 def _serve(port_queue, stop_event) -> None:
     rec = recordings.load(RECORDING, load_gnss=False)
-    frames = lambda: ((t, img) for _, t, img in itertools.islice(rec.frames(), N_SERVED))
-    server = MjpegServer(frames).start()
+    rec.frame_times = rec.frame_times[:N_SERVED]  # the recording's first 2.5 s only
+    server = MjpegServer.for_recording(rec).start()
     port_queue.put(server.url)
     stop_event.wait(30)
     server.stop()
