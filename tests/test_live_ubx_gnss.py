@@ -236,3 +236,40 @@ def test_inav_crc_rejects_a_flipped_bit():
     bad[2] ^= 1 << 7
     with pytest.raises(NavMessageError, match="CRC-24Q mismatch"):
         decode_inav_page(bad)
+
+
+# ------------------------------------------- GPS subframes vs GPSD's decode of the same
+
+
+def test_gps_subframes_match_gpsd_decode():
+    """A NED-M8T's subframes of G03: every one passes parity, and the ephemeris and page 18
+    equal GPSD's decode of the same bytes (raw integers from its regression output, scaled
+    here by the IS-GPS-200 factors)."""
+    path = DATA / "ubx_sfrbx_gpsd.log"
+    asm = EphemerisAssembler()
+    msgs = ubx_messages(path, "RXM-SFRBX")
+    assert len(msgs) == 165
+    hint = gpst_from_week_tow(2048 + 69, 442596.0)  # GPSD: WN 69 (10 bits), TOW 442596
+    for m in msgs:
+        asm.add_sfrbx(m, hint)
+    assert not asm.rejected
+    (eph,) = asm.nav.ephemerides["G03"]
+    sc = math.pi
+    gpsd = {  # EPHEM1/2/3 of ublox-ned-m8t-sbfrx3.log.chk (IODC/IODE 94)
+        "af0": -564075 * 2.0**-31, "af1": -98 * 2.0**-43, "af2": 0.0, "tgd": 4 * 2.0**-31,
+        "crs": -2629 * 2.0**-5, "delta_n": 12436 * 2.0**-43 * sc,
+        "m0": 711953732 * 2.0**-31 * sc, "cuc": -2404 * 2.0**-29, "e": 26888654 * 2.0**-33,
+        "cus": 3112 * 2.0**-29, "sqrt_a": 2702062248 * 2.0**-19,
+        "idot": (4294966727 - 2**32) * 2.0**-43 * sc, "cic": (4294967291 - 2**32) * 2.0**-29,
+        "omega0": 1955503549 * 2.0**-31 * sc, "cis": 0.0, "i0": 660807403 * 2.0**-31 * sc,
+        "crc": 8635 * 2.0**-5, "omega": 559388649 * 2.0**-31 * sc,
+        "omega_dot": -22915 * 2.0**-43 * sc,
+    }
+    for name, value in gpsd.items():
+        assert getattr(eph, name) == pytest.approx(value, rel=1e-15, abs=1e-30), name
+    assert (eph.iode, eph.health) == (94, 0)
+    assert eph.toe % 604800 == 27900 * 16 and eph.toc == eph.toe
+    # IONO of the page 18: a0..a3 = 5, 2, -1, -1; b0..b3 = 38, 3, -1, -5; leap seconds 18
+    assert asm.nav.iono_alpha == (5 * 2.0**-30, 2 * 2.0**-27, -(2.0**-24), -(2.0**-24))
+    assert asm.nav.iono_beta == (38 * 2.0**11, 3 * 2.0**14, -(2.0**16), -5 * 2.0**16)
+    assert asm.nav.leap_seconds == 18
