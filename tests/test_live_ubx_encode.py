@@ -99,8 +99,9 @@ def test_sfrbx_round_trip_on_real_ephemerides(path):
         if eph.sat[0] == "G":
             assert asm.nav.iono_alpha == pytest.approx(nav.iono_alpha, rel=1e-3)
             assert asm.nav.iono_beta == pytest.approx(nav.iono_beta, rel=1e-3)
-    assert worst_pos < 0.03  # metres
-    assert worst_clock < 0.03  # metres of clock
+    # the RINEX values re-quantised: measured 26 µm / 0.15 µm at worst
+    assert worst_pos < 1e-3  # metres
+    assert worst_clock < 1e-3  # metres of clock
 
 
 def test_esf_raw_round_trip():

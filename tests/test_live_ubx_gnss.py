@@ -187,6 +187,17 @@ def test_coldstart_ephemerides_match_convbin(cold_source):
     assert nav.leap_seconds == 18
 
 
+def test_assembler_seeded_from_rinex_grows():
+    seed = read_nav(DATA / "static.nav")
+    n_seed = sum(len(v) for v in seed.ephemerides.values())
+    asm = EphemerisAssembler(seed=seed)
+    src = UbxGnssSource(open_stream(str(COLD)), assembler=asm)
+    list(src)
+    assert asm.nav is seed and "C01" in asm.nav.ephemerides  # the seed's BeiDou kept
+    assert sum(len(v) for v in asm.nav.ephemerides.values()) == n_seed + 18
+    assert asm.nav.iono_alpha == seed.iono_alpha  # no page 18 in the capture
+
+
 def test_coldstart_standalone_position(cold_source):
     """Satellite positions from the decoded subframes fit the same capture's pseudoranges:
     a standalone fix near the receiver's own (NAV-POSECEF) with small residuals."""
