@@ -22,6 +22,7 @@ connected client, for equipment without 61162-450.
 
 from __future__ import annotations
 
+import ipaddress
 import socket
 import threading
 from collections.abc import Iterable, Sequence
@@ -93,7 +94,11 @@ class Iec450Sender:
         self.source_id = source_id
         self._line = 1
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
-        if int(address[0].split(".")[0]) in range(224, 240):
+        try:
+            multicast = ipaddress.ip_address(address[0]).is_multicast
+        except ValueError:  # a host name: unicast
+            multicast = False
+        if multicast:
             self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, ttl)
             if interface:
                 self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF,
