@@ -51,13 +51,14 @@ def frames(name: str, seed: int, times: list[float]) -> tuple[list[np.ndarray], 
                            axis=1)
     moving = sum(b.moves for b in lk.port.boats)
     height = -sc.reference_point_down_m - sc.camera_lever_arm[2]
+    hull = " (own hull in view)" if scene.sees_own_hull(cam) else ""
     summary = (f"{name:10s} seed {seed:3d}: {lk.light.kind:8s} sun {lk.light.sun_az_deg:5.0f}/"
                f"{lk.light.sun_el_deg:4.0f} deg, chop {lk.water.chop:.2f}, quay "
                f"{lk.port.quay_material} {lk.port.quay_height_m:.1f} m, buildings "
                f"{min(lk.port.heights_m):.0f}-{max(lk.port.heights_m):.0f} m at "
                f"{lk.port.setback_m[0]:.0f}+ m, boats {len(lk.port.boats)} ({moving} moving), "
                f"cranes {lk.port.cranes}, camera {height:.1f} m tilt {sc.camera_tilt_deg:.1f} "
-               f"pan {sc.camera_pan_deg:.0f} deg{' (own hull)' if scene.own else ''}, "
+               f"pan {sc.camera_pan_deg:.0f} deg{hull}, "
                f"speed max {speed.max():.2f} m/s, AE {lk.light.auto_exposure:.1f}, "
                f"{len(lk.light.exposure_steps)} exposure steps")
     return out, cost, summary

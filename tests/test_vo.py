@@ -304,7 +304,10 @@ def test_rendered_sequence_tracks_truth(rendered_run):
     outs, truth, vo, _ = rendered_run
     clean = outs[:N_CLEAN]
     tracked = [i for i, o in enumerate(clean) if o.status == "tracking"]
-    assert tracked and tracked[0] < 30, [o.status for o in clean]
+    # Within 4 s: seed 3's port is mirrored in the water since the simulator draws each seed's
+    # look (variety.py); the reflections delay the initialisation (frame 31 with them, 21
+    # without; it was < 30 on the former single look).
+    assert tracked and tracked[0] < 40, [o.status for o in clean]
     # Once initialised, tracking is never lost on this clean sequence.
     assert tracked == list(range(tracked[0], N_CLEAN))
     assert all(o.segment == 0 for o in clean)

@@ -1058,9 +1058,16 @@ def _build_marina(b: Builder, sc: Scenario, port: Port) -> np.ndarray:
         return p.img
     b.long_face((8.0, e0 - 40.0, -qh), (0, 1, 0), (-1, 0, 0), L + 80.0, 8.0,
                 paving(L + 80.0, 8.0), "quay", 20.0)
+    # the land behind: streets up to 150 m (beside the promenade from 30 m, behind the
+    # revetments), then the town out to the hills (a little lower: never coplanar)
+    ground = _plain(pave * 0.85, rng, ppm=3.0, grain=0.1, cell_m=3.0)
     b.long_face((150.0, e0 - 40.0, -qh), (0, 1, 0), (-1, 0, 0), L + 80.0, 142.0,
-                _plain(pave * 0.85, rng, ppm=3.0, grain=0.1, cell_m=3.0)(L + 80.0, 142.0)[0],
-                "ground", 40.0)
+                ground(L + 80.0, 142.0)[0], "ground", 40.0)
+    for a, z in ((-460.0, e0 - 40.0), (e1 + 40.0, 460.0)):
+        b.long_face((150.0, a, -qh), (0, 1, 0), (-1, 0, 0), z - a, 120.0,
+                    ground(z - a, 120.0)[0], "ground", 100.0)
+    b.long_face((2600.0, -1500.0, -qh + 0.05), (0, 1, 0), (-1, 0, 0), 3000.0, 2450.0,
+                _plain(pave * 0.7, rng, 0.2, 0.2, 50.0)(3000.0, 2450.0)[0], "ground", 600.0)
     # rubble revetments continuing the shore beyond the quay ends
     for side in (-1, 1):
         start = e0 if side < 0 else e1

@@ -40,6 +40,7 @@ remaps are markedly faster on 4 channels than on 3.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import cv2
@@ -486,11 +487,17 @@ class PortScene:
 
     # ------------------------------------------------------------------------- building
     @classmethod
-    def build(cls, scenario: Scenario, seed: int) -> PortScene:
+    def build(cls, scenario: Scenario, seed: int, look: variety.Look | None = None
+              ) -> PortScene:
         """The port of ``scenario``'s recording ``seed`` (deterministic: the same from the
-        base scenario or from ``variety.seeded(scenario, seed)``)."""
+        base scenario or from ``variety.seeded(scenario, seed)``). ``look``: another port,
+        light and water than the seed's (e.g. ``variety.reference_look``; the details are
+        still drawn from the seed)."""
         sc = variety.seeded(scenario, seed)
-        look = variety.look(scenario, seed)
+        if look is None:
+            look = variety.look(scenario, seed)
+        else:
+            sc = dataclasses.replace(sc, quay_height_m=look.port.quay_height_m)
         rng = np.random.default_rng(seed)
         kf = np.array(sc.path_keyframes)
         viewpoint = np.array([kf[:, 1].mean(), kf[:, 2].mean(), -5.0])
@@ -498,9 +505,7 @@ class PortScene:
         if sc.scene_kind == "marina":
             outline = _build_marina(b, sc, look.port)
             with b.own_ship():
-                fwd = sc.camera_lever_arm[0] - sc.motion_centre_body[0]
-                if fwd < 0.5 * sc.hull_length_m - 1.0:  # a camera aft of the bow sees it
-                    _own_small_boat(b, sc)
+                _own_small_boat(b, sc)
         elif sc.scene_kind == "container-terminal":
             outline = _build_terminal(b, sc, look.port)
             with b.own_ship():
@@ -576,12 +581,22 @@ class PortScene:
             ne = m.boat.position(t)
             arrs.append(_moved(arr, np.eye(3), np.array([ne[0], ne[1], 0.0])))
             faces += m.faces
-        if self._arrays["own"] is not None:
+        if self._arrays["own"] is not None and self.sees_own_hull(camera):
             C_b_l = R.T @ np.asarray(camera.C_camera_to_body, float).T
             origin = p - C_b_l @ np.asarray(camera.lever_arm_body, float)
             arrs.append(_moved(self._arrays["own"], C_b_l, origin))
             faces += self.own
         return faces, (_concat(arrs) if arrs else None)
+
+    def sees_own_hull(self, camera: CameraCalibration) -> bool:
+        """A camera on a small boat's stem (within 1 m of the bow) sits in the pulpit and sees
+        nothing of the boat; one farther aft looks over the foredeck. A large ship's bridge
+        camera may see her deck and side."""
+        sc = self.scenario
+        if sc.scene_kind != "marina":
+            return True
+        fwd = float(camera.lever_arm_body[0]) - sc.motion_centre_body[0]
+        return fwd < 0.5 * sc.hull_length_m - 1.0
 
     def exposure_gain(self, t: float) -> float:
         """The camera's gain at time t before the auto-exposure: the seed's exposure, a slow

@@ -463,6 +463,43 @@ def look(scenario: Scenario, seed: int) -> Look:
     return _cached("look", base, int(seed), lambda: _draw_look(base, int(seed)))
 
 
+def reference_look(scenario: Scenario) -> Look:
+    """The one look every seed had before the port varied: a clear day with the sun
+    south-south-west 40 deg up, moderately rippled water, a block quay, mid-rise buildings,
+    boats where the path does not go. For tests of the camera pipeline's mechanics (tracking a
+    point, the VO's geometry) that are not about a hard port; the seeds are for robustness."""
+    light = Light(kind="clear", sun_az_deg=215.0, sun_el_deg=40.0, direct=0.42, ambient=0.58,
+                  sun_colour=(1.0, 1.0, 1.0), ambient_colour=(1.0, 1.0, 1.0),
+                  sky_zenith=(196.0, 140.0, 88.0), sky_horizon=(226.0, 214.0, 200.0),
+                  sky_glow=(25.0, 30.0, 35.0), haze=(205.0, 198.0, 188.0), haze_m=4500.0,
+                  cloud_cover=0.27, cloud_colour=(242.0, 242.0, 242.0), exposure=1.0,
+                  exposure_steps=(), auto_exposure=0.0, noise_sigma=2.2, glare=0.6)
+    water = Water(chop=0.5, layers=((7.0, 200.0, 1.0), (1.6, 115.0, 0.75), (0.4, 330.0, 0.6)),
+                  deep=(70.0, 68.0, 38.0), wobble_px=3.9)
+    if scenario.scene_kind == "marina":
+        yachts = [Boat(north=-1.8, east=e, yaw_deg=yaw, length=8.5, beam=2.6, freeboard=0.9,
+                       sail=sail) for e, yaw, sail in ((-52.0, 90.0, True), (-43.0, 270.0, False),
+                                                       (38.0, 90.0, True), (48.0, 270.0, True))]
+        yachts += [Boat(north=n, east=24.4, yaw_deg=180.0, length=8.0, beam=2.6, freeboard=0.9,
+                        sail=True) for n in (-6.0, -15.0)]
+        port = Port(quay_height_m=1.5, quay_material="blocks", concrete=(150.0, 156.0, 158.0),
+                    pontoon=(20.0, 24.0, 2.5), boats=tuple(yachts), setback_m=(30.0, 55.0),
+                    heights_m=(7.0, 10.0, 13.0, 16.0, 22.0), gap_m=(3.0, 12.0),
+                    facade_weights=(0.65, 0.35, 0.0, 0.0, 0.0), repetitive=0.0, trees=0.8,
+                    cranes=0, crane_colours=((40.0, 45.0, 190.0), (232.0, 232.0, 230.0)),
+                    stack_tiers=0, stack_fill=0.0, hills_m=480.0, town=True)
+    else:
+        feeder = Boat(north=-10.8, east=-160.0, yaw_deg=90.0, length=110.0, beam=20.0,
+                      freeboard=7.0, sail=False, kind="feeder")
+        port = Port(quay_height_m=3.0, quay_material="panels", concrete=(150.0, 156.0, 158.0),
+                    pontoon=None, boats=(feeder,), setback_m=(225.0, 260.0),
+                    heights_m=(16.0, 22.0, 28.0), gap_m=(10.0, 40.0),
+                    facade_weights=(0.0, 1.0, 0.0, 0.0, 0.0), repetitive=0.0, trees=0.0,
+                    cranes=4, crane_colours=((40.0, 45.0, 190.0), (232.0, 232.0, 230.0)),
+                    stack_tiers=5, stack_fill=0.85, hills_m=800.0, town=True)
+    return Look(light=light, water=water, port=port)
+
+
 # ------------------------------------------------------------------------- the manoeuvre
 
 
