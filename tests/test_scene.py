@@ -375,7 +375,31 @@ def test_low_sun_casts_shadows_behind_the_buildings():
 def test_exposure_steps_change_the_gain():
     steps = _first_seed(lambda lk, sc: len(lk.light.exposure_steps) > 0)
     scene = PortScene.build(SMALL_BOAT, steps)
-    t0, factor, ramp = scene.look.light.exposure_steps[0]
+    steps = scene.look.light.exposure_steps
+    t0, factor, ramp = steps[0]
+    if len(steps) > 1:
+        assert steps[1][0] > t0 + ramp  # (the first ramp is over before the next)
     before, after = scene.exposure_gain(t0 - 0.01), scene.exposure_gain(t0 + ramp + 0.01)
     # the slow drift moves the gain by < 4 % over a ramp of at most 2 s; a step is >= 10 %
     assert after / before == pytest.approx(factor, rel=0.04)
+    # each step goes to its own level: the gain stays within the steps' factors of the seed's
+    gains = np.array([scene.exposure_gain(t) for t in np.linspace(0.0, 90.0, 901)])
+    lo = min(1.0, *(f for _, f, _ in steps)) * 0.93
+    hi = max(1.0, *(f for _, f, _ in steps)) * 1.07
+    assert np.all((gains > lo * scene.look.light.exposure) &
+                  (gains < hi * scene.look.light.exposure))
+
+
+def test_a_face_cut_by_the_near_plane_keeps_its_outline():
+    """Regression: the far land (2.4 km deep faces) seen from the water with its near corners
+    behind the camera was drawn over the water (its projected corners were clamped, which
+    bent its outline). Nothing at the land's height may be seen over the water."""
+    scene = PortScene.build(SMALL_BOAT, 11)
+    C, p, cam = _seed_view(scene, 30.0)
+    _img, depth = scene.render(C, p, 30.0, cam, np.random.default_rng(0), return_depth=True)
+    gy, gx = np.mgrid[0:cam.height:3, 0:cam.width:3]
+    z = depth[gy, gx].ravel()
+    finite = np.isfinite(z)
+    ned = _pixels_ned(np.column_stack([gx.ravel(), gy.ravel()])[finite], z[finite], C, p, cam)
+    at_land_height = np.abs(ned[:, 2] + scene.scenario.quay_height_m) < 0.1
+    assert np.mean(at_land_height & (ned[:, 0] < -3.0)) < 0.002

@@ -64,7 +64,7 @@ from .scenarios import Scenario
 NEAR_M = 0.15  # near clipping plane (camera z), m
 HALF = 2  # background and reflections are computed at 1/HALF resolution
 MIRROR = np.diag([1.0, 1.0, -1.0])  # reflection in the water plane down = 0
-MIRROR_MIN_AREA_PX = 12.0  # smaller faces are not drawn in the reflections (half-res px)
+MIRROR_MIN_AREA_PX = 40.0  # smaller faces are not drawn in the reflections (half-res px²)
 SHADOW_MAP_PX = 2048
 AE_TARGET = 118.0  # grey level the auto-exposure aims at
 
@@ -276,17 +276,21 @@ def _draw_faces(faces: list[Face], arr: dict, cam, R: np.ndarray, p: np.ndarray,
                     np.minimum(np.floor(py.max(axis=1)) + 2, H)], axis=1).astype(int)
     ocam_k = ocam[idx]
     nv_k = arr["nv"][idx]
+    # a polygon cut by the near plane is also cut to the view (a little wider), so that its
+    # projected corners stay near the image and its outline exact
+    m = 0.25
+    frustum = np.array([[1.0, 0.0, -(xl - m)], [-1.0, 0.0, xr + m], [0.0, 1.0, -(yt - m)],
+                        [0.0, -1.0, yb + m], [0.0, 0.0, 1.0]])
     for j in order:
         if not big[j]:
             continue
         if clip[j]:
-            poly = _clip_near(vk[j, :nv_k[j]])
+            poly = _clip_frustum(vk[j, :nv_k[j]], frustum)
             if len(poly) < 3:
                 continue
             pts = np.empty((len(poly), 2))
             pts[:, 0] = poly[:, 0] / poly[:, 2] * fx + cx
             pts[:, 1] = poly[:, 1] / poly[:, 2] * fy + cy
-            pts = np.clip(pts, -1e5, 1e5)
             x0 = max(int(pts[:, 0].min()), 0)
             y0 = max(int(pts[:, 1].min()), 0)
             x1 = min(int(pts[:, 0].max()) + 2, W)
@@ -349,22 +353,27 @@ def _draw_face(f: Face, pts: np.ndarray, a: float, b: float, c: float,
     cv2.copyTo(inv, mask, zsub)
 
 
-def _clip_near(poly: np.ndarray) -> np.ndarray:
-    """Sutherland-Hodgman clip of a camera-frame polygon against z >= NEAR_M."""
-    inside = poly[:, 2] >= NEAR_M
-    if inside.all():
-        return poly
-    out = []
-    n = len(poly)
-    for k in range(n):
-        a, b = poly[k], poly[(k + 1) % n]
-        ia, ib = a[2] >= NEAR_M, b[2] >= NEAR_M
-        if ia:
-            out.append(a)
-        if ia != ib:
-            s = (NEAR_M - a[2]) / (b[2] - a[2])
-            out.append(a + s * (b - a))
-    return np.array(out) if out else np.zeros((0, 3))
+def _clip_frustum(poly: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """Sutherland-Hodgman clip of a camera-frame polygon to ``planes @ x >= 0`` (the last one
+    ``z >= 0``, taken as z >= NEAR_M)."""
+    for k, plane in enumerate(planes):
+        off = NEAR_M if k == len(planes) - 1 else 0.0
+        d = poly @ plane - off
+        inside = d >= 0.0
+        if inside.all():
+            continue
+        out = []
+        n = len(poly)
+        for i in range(n):
+            a, b = poly[i], poly[(i + 1) % n]
+            if inside[i]:
+                out.append(a)
+            if inside[i] != inside[(i + 1) % n]:
+                out.append(a + d[i] / (d[i] - d[(i + 1) % n]) * (b - a))
+        if len(out) < 3:
+            return np.zeros((0, 3))
+        poly = np.array(out)
+    return poly
 
 
 # ============================================================================== shadows
@@ -600,15 +609,16 @@ class PortScene:
 
     def exposure_gain(self, t: float) -> float:
         """The camera's gain at time t before the auto-exposure: the seed's exposure, a slow
-        drift of a few % and the exposure steps."""
+        drift of a few % and the exposure steps (each ramps the gain to its own level, the
+        seed's gain times its factor: the exposure hunts, it does not run away)."""
         a, b = self.exposure_phase
         L = self.look.light
-        g = L.exposure * (1.0 + 0.045 * np.sin(2 * np.pi * t / 37.0 + a)
-                          + 0.02 * np.sin(2 * np.pi * t / 9.3 + b))
+        level = 1.0
         for t0, factor, ramp in L.exposure_steps:
-            x = np.clip((t - t0) / ramp, 0.0, 1.0)
-            g *= factor ** (0.5 - 0.5 * np.cos(np.pi * x))
-        return float(g)
+            x = float(np.clip((t - t0) / ramp, 0.0, 1.0))
+            level += (factor - level) * (0.5 - 0.5 * np.cos(np.pi * x))
+        return float(L.exposure * level * (1.0 + 0.045 * np.sin(2 * np.pi * t / 37.0 + a)
+                                           + 0.02 * np.sin(2 * np.pi * t / 9.3 + b)))
 
     # --------------------------------------------------------------------------- render
     def render(self, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray, t: float,
