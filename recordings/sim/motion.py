@@ -328,3 +328,8 @@ class ShipMotion:
         wxl = np.cross(st.omega_body, np.asarray(lever_arm_body, float))
         out = st.velocity_ned + np.einsum("nij,nj->ni", st.C_body_to_level, wxl)
         return out[0] if scalar else out
+
+    def surge_sway(self, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """Designed speed along and across the heading of the centre of motion (m/s)."""
+        t = self._times(t)
+        return self._surge(t), self._sway(t)
