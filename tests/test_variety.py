@@ -8,8 +8,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-from backend.reports.tracking import CLICK_RANGE_M, DEFAULT_CLICK_TIMES_S
 
+from evaluation.truth import CLICK_RANGE_M, DEFAULT_CLICK_TIMES_S
 from recordings.sim import variety
 from recordings.sim.motion import ShipMotion
 from recordings.sim.scenarios import LARGE_SHIP, SMALL_BOAT

@@ -38,7 +38,7 @@ from .motion import ShipMotion
 from .scenarios import SCENARIOS, Scenario
 
 # The quay must be seen 6-28 m from the camera over this span of every small-boat recording:
-# the tracking evaluation clicks quay points 5-30 m away at 45..78 s (backend.reports.tracking
+# the tracking evaluation clicks quay points 5-30 m away at 45..78 s (evaluation.truth
 # DEFAULT_CLICK_TIMES_S, CLICK_RANGE_M; a test keeps the two in step).
 QUAY_IN_VIEW_S = (45.0, 78.0)
 QUAY_IN_VIEW_RANGE_M = (6.0, 28.0)
