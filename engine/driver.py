@@ -17,6 +17,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from estimator.integrity import FrameCheck, checked_vo
 from estimator.records import Calibration, GnssEpoch, NavigationData
 from estimator.vo import VisualOdometry, VoOutput
 from recordings.format import Recording
@@ -65,6 +66,9 @@ class FusionEngine(Protocol):
     def solved_views(self) -> Any | None: ...
 
     def timing(self) -> dict: ...
+
+    # The faults the engine raised and cleared (``estimator.integrity.Alert``), in time order.
+    def alerts(self) -> list: ...
 
 
 # (calibration, nav, options as a dict of FusionOptions fields) -> engine
@@ -137,6 +141,7 @@ def run_vo(rec: Recording, until: float | None = None) -> VoPass:
     """The engine's VO (the one ``Fusion.process_frame`` runs) over the video up to gpst
     ``until``: its outputs frame by frame and its cost."""
     vo = VisualOdometry(rec.calibration.camera)
+    check = FrameCheck()
     outputs: list[VoOutput] = []
     t_vo = t_dec = 0.0
     tic = time.perf_counter()
@@ -145,7 +150,7 @@ def run_vo(rec: Recording, until: float | None = None) -> VoPass:
             break
         t1 = time.perf_counter()
         t_dec += t1 - tic
-        outputs.append(vo.process(t, image))
+        outputs.append(checked_vo(vo, check, t, image))
         tic = time.perf_counter()
         t_vo += tic - t1
     n = max(len(outputs), 1)

@@ -33,6 +33,7 @@ from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput
 from .ephemeris import klobuchar_delay, troposphere_delay
 from .frames import WAVELENGTH_L1, ecef_to_ned, ned_to_ecef
 from .gnss_epochs import N_RECEIVERS, GnssFront
+from .integrity import IntegrityMonitor
 from .options import FusionOptions, WorldOrigin
 from .records import GnssEpoch, NavigationData
 
@@ -43,6 +44,7 @@ ROUNDING_SIGMA_CYCLES = 0.12  # predicted single difference must be this sure to
 ROUNDING_FRACTION = 0.3  # ... and the measured fraction this close to an integer
 DELAY_SEED_ATTITUDE = math.radians(8.0)  # attitude σ below which the delays' fractions are found
 DELAY_SEED_COHERENCE = 0.8  # |mean phasor| of the fractions below this: they disagree
+SD_INCONSISTENT_FRACTION = 0.5  # this share of the single differences rejected: a fault
 
 
 class SdIntegers:
@@ -137,8 +139,9 @@ class CarrierPhaseCoupling:
     """One GNSS epoch into the running EKF: η (or v), ζ, the delays, the SPP aiding."""
 
     def __init__(self, nav: NavigationData, options: FusionOptions, config: EkfConfig,
-                 aligning: bool) -> None:
+                 monitor: IntegrityMonitor, aligning: bool) -> None:
         self.nav = nav
+        self.monitor = monitor
         self.options = options
         self.cfg = config
         self.integers = SdIntegers()
@@ -156,6 +159,7 @@ class CarrierPhaseCoupling:
         front.standalone(epochs, joint=False)
         geo = front.geometry(t, epochs, ned_to_ecef(ekf.antenna_position(None), origin.llh))
         slips = detect_cycle_slips(front.prev, epochs, common_clock=opt.common_clock)
+        self.monitor.slips(t, len(slips), sum(len(e.satellites) for e in epochs if e is not None))
         prev_ok = front.prev_geo is not None and ekf.clone_time is not None \
             and abs(front.prev_geo.time - ekf.clone_time) < 1e-3
         rows: list[EtaRow] = []
@@ -164,6 +168,8 @@ class CarrierPhaseCoupling:
                                     phase_sigma_m=cfg.phase_sigma_m,
                                     common_clock=opt.common_clock).rows
             rows = self._atmosphere_corrected(rows, front.prev_geo, geo, origin)
+            if rows and self.monitor.clock_jump(t, self._common_range_change(rows, ekf)):
+                rows = []
         # Single differences: integers re-resolved after slips, rows for the attitude.
         self.integers.drop([key for key in slips if key in self.integers.A])
         sd_rows: list[SdRow] = []
@@ -237,6 +243,12 @@ class CarrierPhaseCoupling:
                 self.last_velocity_time = ekf.time
         bad_sd = set(res_sd.rejected)
         self.n_sd_sats = len({r.sat for k, r in enumerate(sd_rows) if k not in bad_sd})
+        if len(sd_rows) >= 4 and len(bad_sd) >= SD_INCONSISTENT_FRACTION * len(sd_rows):
+            self.monitor.raise_fault("sd-inconsistent", ekf.time, f"{len(bad_sd)} of "
+                                     f"{len(sd_rows)} single differences disagree with the "
+                                     "attitude: integers re-resolved, heading not trusted")
+        elif sd_rows and res_sd.accepted:
+            self.monitor.clear("sd-inconsistent", ekf.time, "single differences agree again")
         if sd_rows:
             self.integers.strike(sd_rows, res_sd.rejected)
             if res_sd.accepted:
@@ -252,7 +264,12 @@ class CarrierPhaseCoupling:
         C = ekf.nominal.C_body_to_level
         delays = np.zeros(3)
         lam = 0.0
-        for j in (1, 2, 3):
+        if epochs[0] is None:
+            return
+        present = [j for j in (1, 2, 3) if epochs[j] is not None]
+        if not present:
+            return
+        for j in present:  # a receiver silent since the start: its delay stays unknown
             phasors = []
             for sat, g in geo.satellites.items():
                 if sat[0] not in SAME_CARRIER_SYSTEMS:
@@ -289,6 +306,14 @@ class CarrierPhaseCoupling:
         elif ekf.time - self.last_velocity_time > SPP_AIDING_AFTER_S:
             R = np.diag(np.square(SPP_SIGMA_M))
             ekf.update_position(spp_ned - origin.offset_ned, R)
+
+    @staticmethod
+    def _common_range_change(rows: Sequence[EtaRow], ekf: ErrorStateEkf) -> float:
+        """The change of all ranges common to the satellites over the interval beyond the
+        estimated clock drift (m): a ship moves metres, a receiver clock jump kilometres."""
+        common = float(np.median([r.measured for r in rows])) - float(np.median(
+            ekf.clock_drift))
+        return common * float(np.median([r.interval for r in rows]))
 
     def carrier_fresh(self, t: float) -> bool:
         """Carrier-phase velocity accepted within the last ``GNSS_STALE_S``."""

@@ -390,6 +390,15 @@ class ErrorStateEkf:
         self._clone_position = s.position_ned.copy()
         self._clone_attitude = s.C_body_to_level.copy()
 
+    def inflate(self, position_m: float, velocity_mps: float, attitude_rad: float) -> None:
+        """Widen the INS error covariance by these 1-σ (per axis): motion the IMU did not
+        measure (a gap), so that the next carrier phase is weighed against what is known."""
+        self.flush()
+        ix, P = self.ix, self.kf.P
+        P[ix.R, ix.R] += np.eye(3) * position_m**2
+        P[ix.V, ix.V] += np.eye(3) * velocity_mps**2
+        P[ix.E, ix.E] += np.eye(3) * attitude_rad**2
+
     def reset_delays(self, delays: np.ndarray, sigma: float) -> None:
         """New δ̂ (e.g. from the fractional parts at the compass fix), uncorrelated, σ each."""
         self.flush()

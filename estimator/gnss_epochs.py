@@ -10,19 +10,23 @@ import numpy as np
 
 from .cpp import EpochGeometry, epoch_geometry
 from .frames import SPEED_OF_LIGHT
+from .integrity import IntegrityMonitor
 from .options import FusionOptions
 from .records import GnssEpoch, NavigationData
 from .spp import standalone_position
 
 N_RECEIVERS = 4
+SPP_EXPECTED_SATELLITES = 6  # with this many, a failed standalone solution is a fault
 
 
 class GnssFront:
     """Epoch selection, SPP and geometry; ``prev`` / ``prev_geo`` are the last epoch used."""
 
-    def __init__(self, nav: NavigationData, options: FusionOptions) -> None:
+    def __init__(self, nav: NavigationData, options: FusionOptions,
+                 monitor: IntegrityMonitor | None = None) -> None:
         self.nav = nav
         self.options = options
+        self.monitor = monitor
         self.t_first: float | None = None  # gpst of the first epoch seen
         self.prev: list[GnssEpoch | None] = [None] * N_RECEIVERS
         self.prev_geo: EpochGeometry | None = None
@@ -74,11 +78,16 @@ class GnssFront:
         spp = standalone_position(present, self.nav,
                                   elevation_mask_deg=self.options.elevation_mask_deg,
                                   initial_ecef=self.spp_ecef)
-        if spp is not None:
+        t = present[0].time
+        if spp is not None and (self.monitor is None or self.monitor.spp(t, spp.position)):
             self.spp_ecef = spp.position
             self.clock_bias_s = spp.clock_bias_m / SPEED_OF_LIGHT
-        else:
-            self.spp_ecef = None
+            return
+        self.spp_ecef = None
+        tracked = len(present[0].satellites)
+        if spp is None and self.monitor is not None and tracked >= SPP_EXPECTED_SATELLITES:
+            self.monitor.raise_fault("spp-implausible", t, f"no plausible standalone position "
+                                     f"from {tracked} satellites: absolute position held")
 
     def advance(self, epochs: list[GnssEpoch | None], geo: EpochGeometry | None) -> None:
         """This epoch becomes the previous one."""

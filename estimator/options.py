@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .ekf import EkfConfig
+from .integrity import Integrity, IntegrityConfig
 from .landmarks import LandmarkParams
 
 
@@ -32,6 +33,8 @@ class FusionOptions:
     # installation constant): the water plane lies that far below the world origin, and
     # structure points on or below it (reflections, water patterns) are not reported.
     body_origin_height_m: float | None = None
+    # Fault detection, protection levels and alert limits (``estimator.integrity``).
+    integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
 
     @property
     def elevation_mask_deg(self) -> float:
@@ -47,6 +50,7 @@ class FusionStatus:
     scale: float | None
     scale_converged: bool
     message: str
+    integrity: Integrity | None = None  # mode, trust, protection levels (None: not assessed)
 
 
 @dataclass

@@ -48,8 +48,9 @@ from .frames import (
     ned_to_ecef,
     rotvec_to_dcm,
 )
-from .gnss_epochs import GnssFront
+from .gnss_epochs import N_RECEIVERS, GnssFront
 from .ins import Ins, InsState, calibration_matrices
+from .integrity import Alert, FrameCheck, IntegrityMonitor, checked_vo
 from .landmarks import LandmarkMap, SolvedViews
 from .options import FusedState, FusionOptions, FusionStatus, WorldOrigin
 from .records import Calibration, GnssEpoch, NavigationData
@@ -60,7 +61,16 @@ __all__ = ["Fusion", "FusionOptions", "FusionStatus", "FusedState"]
 
 SCALE_CONVERGED = 0.01  # relative σ of the VO scale below which it is "converged"
 EXTRAPOLATE_S = 0.5  # a state is extrapolated to a frame time at most this far ahead
+MAX_PENDING = 2000  # measurements waiting for the INS (a silent IMU must not grow it forever)
+# An IMU gap: the motion in it is bounded by these (a ship's turn-rate and acceleration
+# changes), and the INS error covariance widened by them over the gap's length.
+GAP_RATE_SIGMA = 0.05  # rad/s
+GAP_ACCEL_SIGMA = 0.4  # m/s²
+GAP_MEAN_S = 3.0  # the INS coasts on the raw samples' mean over about this long (waves cancel)
 _PAST = 1e-6
+# The fusion's phase → the declared mode (``estimator.integrity``)
+_MODE = {"initialising": "no position", "aligning": "aligning", "fused": "fused",
+         "degraded": "coasting"}
 
 
 @dataclass
@@ -92,7 +102,9 @@ class Fusion:
         self.nav = nav
         self.options = opt = options or FusionOptions()
         self.cfg = opt.ekf or EkfConfig()
-        self.antennas = np.asarray(calibration.antennas_body, float)
+        self.antennas = _four_antennas(np.asarray(calibration.antennas_body, float))
+        self.monitor = IntegrityMonitor(opt.integrity)
+        self.frame_check = FrameCheck(opt.integrity)
         self.compass = GnssCompass(nav, self.antennas, elevation_mask_deg=opt.elevation_mask_deg)
         self.vo = VisualOdometry(calibration.camera) if opt.use_vo else None
         self.ins: Ins | None = None
@@ -100,9 +112,10 @@ class Fusion:
         self.origin: WorldOrigin | None = None
         self._G, A = calibration_matrices(calibration.imu)
         self._last_raw: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._raw_mean: tuple[np.ndarray, np.ndarray] | None = None  # (gyro, accel) over ~3 s
         self._pending: deque[_Pending] = deque()
         self._timer = _Timer()
-        self.front = GnssFront(nav, opt)
+        self.front = GnssFront(nav, opt, self.monitor)
         self.alignment = Alignment(self.compass, self.antennas, self._G, A, self.cfg.phase_sigma_m,
                                    opt.common_clock)
         self.carrier: CarrierPhaseCoupling | None = None  # once the INS runs
@@ -120,17 +133,26 @@ class Fusion:
         t = float(t)
         gyro = np.asarray(gyro, float)
         accel = np.asarray(accel, float)
+        gap = self.monitor.imu_gap(t)
+        if not self.monitor.imu(t, gyro, accel):
+            return  # dropped (the monitor says why)
         if self.ekf is None:
             self.alignment.buffer_imu(t, gyro, accel)
         else:
+            if gap > self.options.integrity.imu_gap_s:
+                self._bridge_gap(t, gap)
             self._advance(t, gyro, accel)
         self._last_raw = (t, gyro, accel)
+        self._average(gyro, accel)
         self._timer.add("imu", _time.perf_counter() - t0)
 
     def process_gnss(self, t: float, epochs: list[GnssEpoch | None]) -> None:
         """The four receivers' epochs of time tag ``t`` (None for a receiver without one)."""
         t0 = _time.perf_counter()
         t = float(t)
+        epochs = list(epochs) + [None] * (N_RECEIVERS - len(epochs))
+        if not self.monitor.gnss(t, [e is not None and bool(e.satellites) for e in epochs]):
+            return
         epochs = self.front.select(t, epochs,
                                    carrier_off=not self.options.use_cpp and self.ekf is not None)
         if self.ekf is None:
@@ -148,7 +170,7 @@ class Fusion:
         t0 = _time.perf_counter()
         if self.vo is not None:
             t1 = _time.perf_counter()
-            out = self.vo.process(float(t), image)
+            out = checked_vo(self.vo, self.frame_check, float(t), image)
             self._timer.add("vo", _time.perf_counter() - t1)
             self.process_vo(out)
         state = self.state(at=float(t))
@@ -157,8 +179,11 @@ class Fusion:
 
     def process_vo(self, out: VoOutput) -> None:
         """Use one VO output (from ``process_frame`` or the VO run apart) at its time."""
-        if not self.options.use_vo:
-            return
+        use_vo = self.options.use_vo
+        if not self.monitor.vo_frame(float(out.time), out.problem if use_vo else ""):
+            return  # its time goes backwards (the monitor says so)
+        if not use_vo or out.status == "skipped":
+            return  # an unusable frame (the monitor raised why): the VO keeps its state
         self.coupling.status = out.status
         if self.ekf is None:
             return
@@ -230,10 +255,18 @@ class Fusion:
         fixed = self.compass.fixed if carrier is None else carrier.n_sd_sats > 0
         message = carrier.message if carrier is not None and carrier.message \
             else self.alignment.message
+        integrity = self.monitor.assess(
+            self.monitor.last_input, _MODE[phase],
+            None if ekf is None else ekf.P[ekf.ix.R, ekf.ix.R],
+            None if ekf is None else float(ekf.P[ekf.ix.E, ekf.ix.E][2, 2]))
         return FusionStatus(phase=phase, compass_fixed=fixed,
                             satellites=0 if carrier is None else carrier.n_sats,
                             vo_status=vo_status, scale=scale, scale_converged=converged,
-                            message=message)
+                            message=message, integrity=integrity)
+
+    def alerts(self) -> list[Alert]:
+        """Every fault raised (and cleared) so far, in time order (``estimator.integrity``)."""
+        return list(self.monitor.alerts)
 
     def solved_views(self) -> SolvedViews | None:
         """The landmark window's views with their solved attitudes (``SolvedViews``), for
@@ -275,6 +308,35 @@ class Fusion:
             self._handle(item)  # the INS is there already (or a late message: use it now)
         else:
             self._pending.append(item)
+            while len(self._pending) > MAX_PENDING:  # the IMU is silent (a fault is raised)
+                self._pending.popleft()
+
+    def _bridge_gap(self, t: float, gap: float) -> None:
+        """An IMU gap ending at ``t``: the INS coasts through it on the last sample (a ship's
+        motion is smooth), the waiting measurements applied at their times, its covariance
+        widened by what the gap left unmeasured."""
+        ekf = self.ekf
+        assert ekf is not None and self._last_raw is not None and self._raw_mean is not None
+        t_last = self._last_raw[0]
+        g0, a0 = self._raw_mean
+        step = self.monitor.imu_interval  # at the IMU's own rate: one long step would not do
+        for k in range(1, int(gap / step)):
+            # The error of a held rate (acceleration) grows linearly in the attitude (velocity)
+            # and quadratically in the position: the variance added over this step.
+            a, b = (k - 1) * step, k * step
+            ekf.inflate(position_m=0.5 * GAP_ACCEL_SIGMA * math.sqrt(b**4 - a**4),
+                        velocity_mps=GAP_ACCEL_SIGMA * math.sqrt(b**2 - a**2),
+                        attitude_rad=GAP_RATE_SIGMA * math.sqrt(b**2 - a**2))
+            self._advance(t_last + b, g0, a0)
+
+    def _average(self, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """The raw samples' running mean (time constant ``GAP_MEAN_S``): what a gap coasts on."""
+        if self._raw_mean is None:
+            self._raw_mean = (gyro, accel)
+            return
+        w = min(1.0, self.monitor.imu_interval / GAP_MEAN_S)
+        g, a = self._raw_mean
+        self._raw_mean = (g + w * (gyro - g), a + w * (accel - a))
 
     def _advance(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> None:
         """Propagate to ``t``, stopping exactly at the pending measurements on the way."""
@@ -337,5 +399,18 @@ class Fusion:
         for ts, g, a in samples:
             self.ekf.propagate(ts, g, a)
         self.alignment.imu.clear()
-        self.carrier = CarrierPhaseCoupling(self.nav, self.options, self.cfg,
+        self.carrier = CarrierPhaseCoupling(self.nav, self.options, self.cfg, self.monitor,
                                             aligning=start.attitude_sigma is not None)
+
+
+def _four_antennas(antennas: np.ndarray) -> np.ndarray:
+    """The compass's four antennas; a receiver missing from the recording (three antennas
+    given) stands at the centroid of the others, so the array centre stays where it is, and
+    never observes anything (its epochs are all missing)."""
+    if len(antennas) >= N_RECEIVERS:
+        return antennas[:N_RECEIVERS]
+    if len(antennas) < 2:
+        raise ValueError(f"the GNSS compass needs at least 2 antennas, the calibration has "
+                         f"{len(antennas)}")
+    fill = np.repeat(antennas.mean(axis=0)[None], N_RECEIVERS - len(antennas), axis=0)
+    return np.vstack([antennas, fill])

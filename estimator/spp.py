@@ -52,6 +52,10 @@ _IONO_SIGMA_NO_MODEL = 5.0  # m at zenith when no Klobuchar coefficients are bro
 _TROPO_SIGMA = 0.1  # m at zenith for the standard-atmosphere model
 
 NORMALISED_RESIDUAL_LIMIT = 4.0
+# Plausibility of a solution (a ship's receivers): a diverged or ill-conditioned solution is
+# refused rather than returned (it would anchor the absolute position, or seed the next epoch).
+HEIGHT_RANGE_M = (-500.0, 10_000.0)  # ellipsoidal height
+MAX_RESIDUAL_RMS_M = 50.0
 _MAX_ITERATIONS = 20
 _CONVERGED_M = 1e-4
 
@@ -195,6 +199,15 @@ def _solve(lin: _Linearised, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return Q @ (A.T @ b), Q
 
 
+def plausible(height_m: float, pdop: float, residuals_m: np.ndarray) -> bool:
+    """A standalone solution a ship's receiver can have: height within ``HEIGHT_RANGE_M``, a
+    geometry that solves (finite PDOP; a minimal set may be in the hundreds and still right),
+    post-fit residuals within ``MAX_RESIDUAL_RMS_M`` RMS."""
+    rms = float(np.sqrt(np.mean(np.square(residuals_m)))) if len(residuals_m) else 0.0
+    return (HEIGHT_RANGE_M[0] <= height_m <= HEIGHT_RANGE_M[1] and math.isfinite(pdop)
+            and rms <= MAX_RESIDUAL_RMS_M)
+
+
 def _distinct_sats(obs: list[_Obs]) -> int:
     return len({o.sat for o in obs})
 
@@ -208,8 +221,8 @@ def standalone_position(
 ) -> StandalonePosition | None:
     """Standalone position of one epoch (or of several receivers sharing one clock).
 
-    None when fewer than 3 + (number of systems) satellites are usable or the iteration does
-    not converge.
+    None when fewer than 3 + (number of systems) satellites are usable, the iteration does
+    not converge or the solution is not ``plausible``.
     """
     epochs = [epoch] if isinstance(epoch, GnssEpoch) else list(epoch)
     if not epochs:
@@ -266,10 +279,13 @@ def standalone_position(
 
     ref = lin.systems[0]
     pdop = float(math.sqrt(np.trace(np.linalg.inv(lin.H.T @ lin.H)[:3, :3])))
+    llh = ecef_to_geodetic(pos)
+    if not plausible(llh[2], pdop, v):
+        return None
     return StandalonePosition(
         time=t_tag,
         position=pos,
-        llh=ecef_to_geodetic(pos),
+        llh=llh,
         clock_bias_m=float(clocks[ref]),
         system_biases_m={s: float(clocks[s] - clocks[ref]) for s in lin.systems},
         satellites=[o.key for o in lin.obs],

@@ -115,6 +115,8 @@ class VoOutput:
     # the first pose of the segment by the initialisation time: the fusion takes B0 (body
     # attitude at W) at this time, not at the first "tracking" output.
     world_time: float | None = None
+    # Why the frame was not used (``integrity.FrameCheck``: black, blinded, frozen), "" if it was.
+    problem: str = ""
 
 
 # ---------------------------------------------------------------------------- geometry

@@ -63,6 +63,8 @@ SCENE_POINTS_FILE = "reference/scene_points.csv"
 
 VIDEO_FPS = 10.0
 IMU_GAP_FACTOR = 5.0  # a gap is an interval longer than this many nominal sample intervals
+EARLY_END_S = 1.0  # a stream ending this long before the recording does is noted
+COMPASS_RECEIVERS = 4
 _REQUIRED_FILE_KEYS = ("video", "frame_times", "imu", "gnss_obs", "gnss_nav", "calibration",
                        "hull")
 _OPTIONAL_FILE_KEYS = ("reference", "scene_points")
@@ -583,12 +585,21 @@ def _check_span(path: Path, t: np.ndarray, manifest: Manifest, what: str) -> Non
             "seconds since 1980-01-06")
 
 
-def _read_imu(path: Path) -> ImuData:
+def _read_imu(path: Path) -> tuple[ImuData, list[str]]:
+    """The IMU samples as logged. Time tags that do not increase are kept (a logger's clock
+    can step back): the engine drops such samples and says so; the load notes them."""
     data, line_no = _read_numeric_csv(path, IMU_COLUMNS)
     if len(data) < 2:
         raise RecordingError(f"{path}: needs at least 2 samples, has {len(data)}")
-    _check_increasing(path, "time_gpst", data[:, 0], line_no)
-    return ImuData(time=data[:, 0].copy(), gyro=data[:, 1:4].copy(), accel=data[:, 4:7].copy())
+    notes = []
+    back = np.flatnonzero(np.diff(data[:, 0]) <= 0)
+    if len(back):
+        k = back[0] + 1
+        notes.append(f"{path.name}: {len(back)} time tag(s) do not increase, the first at line "
+                     f"{line_no[k]} ({data[k, 0]:.6f} after {data[k - 1, 0]:.6f}): those "
+                     "samples are dropped by the engine")
+    return ImuData(time=data[:, 0].copy(), gyro=data[:, 1:4].copy(),
+                   accel=data[:, 4:7].copy()), notes
 
 
 def _read_frame_times(path: Path) -> np.ndarray:
@@ -749,15 +760,24 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
                      f"{files['frame_times']} lists {len(frame_times)}")
 
     imu_path = root / files["imu"]
-    imu = _read_imu(imu_path)
+    imu, imu_notes = _read_imu(imu_path)
+    notes += imu_notes
     _check_span(imu_path, imu.time, manifest, "IMU samples")
     gaps = imu_gaps(imu.time)
     if gaps:
         notes.append(f"{files['imu']} has {len(gaps)} gap(s), longest {max(g[1] for g in gaps):.3f}"
                      f" s at {gaps[0][0]:.3f}")
+    notes += _early_ends(manifest, {files["imu"]: float(np.max(imu.time)),
+                                    files["frame_times"]: float(frame_times[-1])})
 
     if load_gnss:
         gnss, headers = _load_gnss(root, manifest, manifest_path, calibration)
+        if len(gnss) != COMPASS_RECEIVERS:
+            notes.append(f"{len(gnss)} receivers: the GNSS compass needs {COMPASS_RECEIVERS} "
+                         "for its own attitude fix (the fusion then starts from the course "
+                         "over ground, and holds the heading with the antennas it has)")
+        notes += _early_ends(manifest, {rel: eps[-1].time for rel, eps in
+                                        zip(files["gnss_obs"], gnss, strict=True) if eps})
         nav_path = root / files["gnss_nav"]
         nav = _rinex_call(nav_path, rinex.read_nav, nav_path)
         if not nav.ephemerides:
@@ -776,6 +796,14 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
                      frame_times=frame_times, gnss=gnss, gnss_headers=headers, nav=nav,
                      reference=reference, scene_points=points, scene_point_kinds=kinds,
                      video_info=video, gnss_loaded=load_gnss, warnings=notes)
+
+
+def _early_ends(manifest: Manifest, last: dict[str, float]) -> list[str]:
+    """Streams (file → last time tag) that end more than ``EARLY_END_S`` before the
+    recording does."""
+    end = manifest.start_gpst + manifest.duration_s
+    return [f"{name} ends at {t - manifest.start_gpst:.1f} s of the recording's "
+            f"{manifest.duration_s:g} s" for name, t in last.items() if t < end - EARLY_END_S]
 
 
 def imu_gaps(time: np.ndarray, factor: float = IMU_GAP_FACTOR) -> list[tuple[float, float]]:

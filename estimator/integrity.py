@@ -1,0 +1,356 @@
+"""Integrity of the fusion: the berthing aid knows, and says, when not to trust it.
+
+Three parts (the concepts of GNSS integrity, thesis-independent; ``docs/references.md``):
+
+- **Fault detection on the inputs** (``IntegrityMonitor``): every IMU sample, GNSS epoch and
+  frame is checked before the fusion uses it — time going backwards, non-finite or physically
+  implausible IMU values (spikes, saturation), a frozen IMU, gaps, a silent stream (IMU,
+  receivers, video), black / blinded / frozen frames, a burst of cycle slips, a receiver clock
+  jump, an implausible standalone position. A sample that fails is not used; a fault is raised
+  with its time and reason, and cleared when the input is healthy again. Faults found inside the
+  fusion (single differences that no longer agree with the attitude, an inconsistent VO) are
+  raised by the stage that finds them.
+- **A declared mode** (``Integrity.mode``): ``fused`` (carrier phase drives the trajectory),
+  ``coasting`` (INS, and VO when it tracks, without carrier phase), ``aligning`` (heading from the
+  course over ground only), ``no position`` (initialising, or no IMU: nothing to trust).
+- **Protection levels**: with every state, a horizontal protection level HPL (m) and a heading
+  protection level (deg) that the true error exceeds with a probability below the integrity
+  risk: ``k`` times the filter's 1-σ (major axis of the horizontal covariance; the heading σ),
+  ``k`` from the χ² quantile of the integrity risk, plus the error a fault just below the
+  detection thresholds could leave (``IntegrityConfig.undetected_*``). The state is **trusted**
+  when the mode is usable, no critical fault is active and both levels are within their alert
+  limits (default 0.5 m, 1°).
+
+Every raised fault is also an ``Alert`` (time, kind, message) in the monitor's history: the
+report, the page and the bridge outputs read them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2
+
+from .vo import VisualOdometry, VoOutput
+
+MODES = ("fused", "coasting", "aligning", "no position")
+USABLE_MODES = ("fused", "coasting")
+
+# Faults that make the output untrusted while they are active (the others are warnings: the
+# fusion works around them, e.g. a receiver silent while three others track).
+CRITICAL = frozenset({"imu-silent", "imu-implausible", "imu-frozen", "time-backwards",
+                      "sd-inconsistent", "vo-inconsistent"})
+
+
+@dataclass
+class IntegrityConfig:
+    alert_limit_m: float = 0.5  # horizontal alert limit (berthing: 0.5 m)
+    heading_alert_limit_deg: float = 1.0
+    integrity_risk: float = 1e-7  # probability that the error exceeds the protection level
+    # Errors a fault just below the detection thresholds may leave (added to k·σ).
+    undetected_horizontal_m: float = 0.005
+    undetected_heading_deg: float = 0.02
+    # IMU checks (a ship: rates and specific forces far from a MEMS unit's range)
+    imu_gap_s: float = 0.05  # samples further apart than this: a gap
+    imu_silent_s: float = 0.3  # no IMU sample for this long while other inputs arrive
+    max_rate_rad_s: float = 3.0  # |ω| beyond this is not a ship's motion
+    max_specific_force: float = 40.0  # m/s²
+    max_rate_step: float = 2.0  # rad/s between consecutive samples (a spike)
+    max_force_step: float = 30.0  # m/s² between consecutive samples
+    frozen_samples: int = 20  # the same raw sample this many times running: frozen
+    # GNSS checks
+    receiver_silent_epochs: int = 3  # epochs without a receiver before it is declared silent
+    slip_burst_fraction: float = 0.5  # this share of the tracked signals slipping at once
+    clock_jump_m: float = 3000.0  # common change of all ranges beyond the drift (1 µs ≈ 300 m)
+    spp_max_speed_mps: float = 50.0  # standalone positions implying more than this
+    # Video checks
+    video_silent_s: float = 1.0  # no frame for this long while other inputs arrive
+    dark_level: float = 8.0  # mean grey level below this: black frame
+    bright_level: float = 245.0  # mean grey level above this: blinded frame
+    saturated_fraction: float = 0.9  # ... or this share of pixels saturated
+    # Mean grey-level change from the last frame below this: the same frame again (a re-encoded
+    # repeat differs by ~0.001; a live camera's noise alone by ~1).
+    frozen_level: float = 0.05
+
+    def k(self, dof: int) -> float:
+        """Multiple of σ that the error exceeds with probability ``integrity_risk``."""
+        return float(math.sqrt(chi2.ppf(1.0 - self.integrity_risk, dof)))
+
+
+@dataclass(frozen=True)
+class Alert:
+    t: float  # gpst the fault was raised (or cleared)
+    kind: str
+    message: str
+    active: bool = True  # False: the fault cleared at t
+
+
+@dataclass
+class Integrity:
+    """What the officer may trust in one state (``FusionStatus.integrity``)."""
+
+    mode: str
+    trusted: bool
+    reasons: list[str] = field(default_factory=list)  # active faults, most severe first
+    hpl_m: float | None = None  # horizontal protection level
+    heading_pl_deg: float | None = None
+    alert_limit_m: float = 0.5
+    heading_alert_limit_deg: float = 1.0
+
+
+class IntegrityMonitor:
+    """Input checks and the fault register of one fusion engine."""
+
+    def __init__(self, config: IntegrityConfig | None = None) -> None:
+        self.cfg = config or IntegrityConfig()
+        self.active: dict[str, Alert] = {}  # kind → the alert that raised it
+        self.alerts: list[Alert] = []  # history, raised and cleared
+        self.last_input = -math.inf  # gpst of the newest input of any kind
+        self.last_imu = -math.inf
+        self.last_frame = -math.inf
+        self.frames_seen = 0
+        self.last_gnss = -math.inf
+        self._prev_raw: tuple[np.ndarray, np.ndarray] | None = None
+        self._intervals: deque[float] = deque(maxlen=50)  # recent regular IMU intervals
+        self._same = 0
+        self._rx_missing: dict[int, int] = {}
+        self._frame_sig: np.ndarray | None = None
+        self._spp: tuple[float, np.ndarray] | None = None
+
+    # ------------------------------------------------------------------------ register
+
+    def raise_fault(self, kind: str, t: float, message: str) -> None:
+        """A fault (again): recorded once until it clears; its message kept current."""
+        alert = Alert(float(t), kind, message)
+        if kind not in self.active:
+            self.alerts.append(alert)
+        self.active[kind] = alert if kind not in self.active else \
+            Alert(self.active[kind].t, kind, message)
+
+    def clear(self, kind: str, t: float, message: str = "") -> None:
+        if kind in self.active:
+            del self.active[kind]
+            self.alerts.append(Alert(float(t), kind, message or f"{kind} cleared", False))
+
+    def is_active(self, kind: str) -> bool:
+        return kind in self.active
+
+    def _input(self, t: float) -> None:
+        self.last_input = max(self.last_input, t)
+
+    # ---------------------------------------------------------------------------- IMU
+
+    def imu(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> bool:
+        """Whether an IMU sample may be used (False: dropped, the fault raised)."""
+        cfg = self.cfg
+        if t <= self.last_imu:  # declared at the stream's own time, not the bad tag's
+            self.raise_fault("time-backwards", self.last_imu,
+                             f"IMU time tag {self.last_imu - t:.2f} s before the last one: "
+                             "sample dropped")
+            return False
+        self.clear("time-backwards", t, "time tags increase again")
+        if not (np.isfinite(gyro).all() and np.isfinite(accel).all()):
+            self.raise_fault("imu-implausible", t, "IMU sample not finite: dropped")
+            return False
+        prev = self._prev_raw
+        self._prev_raw = (gyro, accel)
+        if prev is not None and np.array_equal(prev[0], gyro) and np.array_equal(prev[1], accel):
+            self._same += 1
+        else:
+            self._same = 0
+        if self._same >= cfg.frozen_samples:
+            self.raise_fault("imu-frozen", t, f"IMU repeats one sample ({self._same + 1} "
+                             "times): its data are not used")
+            return False
+        self.clear("imu-frozen", t, "IMU samples vary again")
+        rate, force = float(np.linalg.norm(gyro)), float(np.linalg.norm(accel))
+        spike = prev is not None and (
+            float(np.linalg.norm(gyro - prev[0])) > cfg.max_rate_step
+            or float(np.linalg.norm(accel - prev[1])) > cfg.max_force_step)
+        if rate > cfg.max_rate_rad_s or force > cfg.max_specific_force or spike:
+            self.raise_fault("imu-implausible", t, f"IMU sample implausible (|ω| {rate:.2f} "
+                             f"rad/s, |f| {force:.1f} m/s²{', a spike' if spike else ''}): "
+                             "dropped")
+            if spike:  # compare the next sample with the last good one
+                self._prev_raw = prev
+            return False
+        self.clear("imu-implausible", t, "IMU samples plausible again")
+        gap = t - self.last_imu
+        if math.isfinite(gap) and gap > cfg.imu_gap_s:
+            self.raise_fault("imu-gap", t, f"IMU gap of {gap:.2f} s: bridged, "
+                             "uncertainty inflated")
+        else:
+            self.clear("imu-gap", t, "IMU samples regular again")
+            if math.isfinite(gap):
+                self._intervals.append(gap)
+        self.clear("imu-silent", t, "IMU samples again")
+        self.last_imu = t
+        self._input(t)
+        return True
+
+    @property
+    def imu_interval(self) -> float:
+        """The IMU's regular sample interval (s), from the recent samples."""
+        return float(np.median(self._intervals)) if self._intervals else 0.01
+
+    def imu_gap(self, t: float) -> float:
+        """The time since the last used IMU sample (the gap a sample at ``t`` closes)."""
+        return t - self.last_imu
+
+    # --------------------------------------------------------------------------- GNSS
+
+    def gnss(self, t: float, present: list[bool]) -> bool:
+        """Whether a GNSS epoch may be used; ``present``: which receivers have an epoch."""
+        if t <= self.last_gnss:
+            self.raise_fault("time-backwards", self.last_gnss,
+                             f"GNSS epoch {self.last_gnss - t:.2f} s before the last one: "
+                             "dropped")
+            return False
+        self.last_gnss = t
+        self._input(t)
+        for i, here in enumerate(present):
+            kind = f"receiver-{i + 1}-silent"
+            if here:
+                self._rx_missing[i] = 0
+                self.clear(kind, t, f"receiver {i + 1} tracks again")
+                continue
+            self._rx_missing[i] = self._rx_missing.get(i, 0) + 1
+            if self._rx_missing[i] >= self.cfg.receiver_silent_epochs:
+                self.raise_fault(kind, t, f"receiver {i + 1} silent for "
+                                 f"{self._rx_missing[i]} epochs: the compass works with the "
+                                 "other antennas")
+        self._stream_checks(t)
+        return True
+
+    def slips(self, t: float, slipped: int, tracked: int) -> None:
+        """A burst: most of the tracked signals slipping at one epoch."""
+        if tracked >= 4 and slipped >= self.cfg.slip_burst_fraction * tracked:
+            self.raise_fault("cycle-slips", t, f"burst of cycle slips: {slipped} of {tracked} "
+                             "signals; their integers are re-resolved")
+        else:
+            self.clear("cycle-slips", t, "carrier phase continuous again")
+
+    def clock_jump(self, t: float, common_m: float) -> bool:
+        """Whether the common change of all carrier-phase ranges over the interval (beyond
+        the estimated drift) is a receiver clock jump; raised as a fault when it is."""
+        if abs(common_m) > self.cfg.clock_jump_m:
+            self.raise_fault("clock-jump", t, f"receiver clock jump of {common_m / 299.792458:.1f}"
+                             " µs: this interval's carrier-phase velocity is not used")
+            return True
+        self.clear("clock-jump", t, "receiver clock continuous")
+        return False
+
+    def spp(self, t: float, ecef: np.ndarray | None) -> bool:
+        """Whether a standalone position is plausible against the previous one (speed)."""
+        if ecef is None:
+            return False
+        prev = self._spp
+        if prev is not None and t > prev[0]:
+            speed = float(np.linalg.norm(ecef - prev[1])) / (t - prev[0])
+            if speed > self.cfg.spp_max_speed_mps and t - prev[0] < 10.0:
+                self.raise_fault("spp-implausible", t, f"standalone position jumps at "
+                                 f"{speed:.0f} m/s: not used (absolute position held)")
+                return False
+        self.clear("spp-implausible", t, "standalone position plausible again")
+        self._spp = (t, np.asarray(ecef, float))
+        return True
+
+    # -------------------------------------------------------------------------- video
+
+    def vo_frame(self, t: float, problem: str) -> bool:
+        """A frame's VO output arrived (``problem``: why the frame was unusable, "" if it was
+        used); False when its time goes backwards."""
+        if t <= self.last_frame:
+            self.raise_fault("time-backwards", self.last_frame,
+                             f"frame time {self.last_frame - t:.2f} s before the last one: "
+                             "dropped")
+            return False
+        self.last_frame = t
+        self.frames_seen += 1
+        self._input(t)
+        self.clear("video-silent", t, "frames arrive again")
+        if problem:
+            self.raise_fault("video", t, f"{problem}: the VO skips it")
+        else:
+            self.clear("video", t, "video usable again")
+        return True
+
+    # -------------------------------------------------------------------------- state
+
+    def _stream_checks(self, t: float) -> None:
+        """Streams that fell silent while others go on."""
+        if math.isfinite(self.last_imu) and t - self.last_imu > self.cfg.imu_silent_s:
+            self.raise_fault("imu-silent", t, f"no IMU sample for {t - self.last_imu:.1f} "
+                             "s: no position")
+        if self.frames_seen and t - self.last_frame > self.cfg.video_silent_s:
+            self.raise_fault("video-silent", t, f"no video frame for {t - self.last_frame:.1f}"
+                             " s: no VO")
+
+    def assess(self, t: float, mode: str, position_cov: np.ndarray | None,
+               heading_var: float | None) -> Integrity:
+        """The integrity of a state at ``t``: its mode, protection levels and trust."""
+        cfg = self.cfg
+        self._stream_checks(max(t, self.last_input))
+        if self.is_active("imu-silent"):
+            mode = "no position"
+        hpl = hdg = None
+        if position_cov is not None and heading_var is not None and mode != "no position":
+            major = float(np.linalg.eigvalsh(np.asarray(position_cov, float)[:2, :2])[-1])
+            hpl = cfg.k(2) * math.sqrt(max(major, 0.0)) + cfg.undetected_horizontal_m
+            hdg = cfg.k(1) * math.degrees(math.sqrt(max(heading_var, 0.0))) \
+                + cfg.undetected_heading_deg
+        critical = [a for k, a in self.active.items() if k in CRITICAL]
+        trusted = (mode in USABLE_MODES and not critical and hpl is not None
+                   and hpl <= cfg.alert_limit_m and hdg is not None
+                   and hdg <= cfg.heading_alert_limit_deg)
+        reasons = [a.message for a in critical] + [a.message for k, a in self.active.items()
+                                                   if k not in CRITICAL]
+        if hpl is not None and hpl > cfg.alert_limit_m:
+            reasons.append(f"protection level {hpl:.2f} m above the {cfg.alert_limit_m:g} m "
+                           "alert limit")
+        if hdg is not None and hdg > cfg.heading_alert_limit_deg:
+            reasons.append(f"heading protection level {hdg:.2f}° above the "
+                           f"{cfg.heading_alert_limit_deg:g}° alert limit")
+        return Integrity(mode, bool(trusted), reasons, hpl, hdg, cfg.alert_limit_m,
+                         cfg.heading_alert_limit_deg)
+
+
+class FrameCheck:
+    """Is a frame fit for the VO? Black, blinded (saturated) and frozen (the very frame again)
+    frames are not (``IntegrityConfig`` levels). Stateful: it remembers the last frame."""
+
+    def __init__(self, config: IntegrityConfig | None = None) -> None:
+        self.cfg = config or IntegrityConfig()
+        self._last: np.ndarray | None = None
+
+    def problem(self, image: np.ndarray) -> str:
+        """Why the frame is unusable, "" when it is fine."""
+        cfg = self.cfg
+        small = np.asarray(image)[::8, ::8]
+        grey = small.mean(axis=2) if small.ndim == 3 else small.astype(float)
+        last, self._last = self._last, small
+        level = float(grey.mean())
+        if level < cfg.dark_level:
+            return f"video black (mean level {level:.0f})"
+        if level > cfg.bright_level or np.mean(grey >= 250) > cfg.saturated_fraction:
+            return f"video blinded (mean level {level:.0f})"
+        if last is not None and last.shape == small.shape and np.mean(np.abs(
+                small.astype(np.int16) - last.astype(np.int16))) < cfg.frozen_level:
+            return "video frozen (the same frame again)"
+        return ""
+
+
+def checked_vo(vo: VisualOdometry, check: FrameCheck, t: float, image: np.ndarray) -> VoOutput:
+    """The VO's output of a frame, or, for a frame unfit for it, an output that says why
+    (status "skipped"; the VO's state untouched). The engine and the evaluation's VO pass
+    both go through here."""
+    problem = check.problem(image)
+    if not problem:
+        return vo.process(t, image)
+    return VoOutput(time=float(t), status="skipped", segment=-1, C_world_to_camera=None,
+                    camera_position_world=None, n_tracked=0, n_inliers=0, is_keyframe=False,
+                    points_world=np.zeros((0, 3)), point_ids=np.zeros(0, np.int64),
+                    observations=(np.zeros(0, np.int64), np.zeros((0, 2))), problem=problem)

@@ -1,0 +1,211 @@
+"""Integrity (estimator/integrity.py): the fusion detects faults, declares them, and never
+states a protection level its error exceeds while it says it is trusted. Unit checks of the
+monitor, then every fault of recordings/faults.py injected into a simulated recording and run
+through the engine path the server and the report use (engine.driver via evaluation.runs)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from engine.driver import VoPass, run_vo
+from estimator.integrity import FrameCheck, IntegrityConfig, IntegrityMonitor
+from estimator.pipeline import FusionOptions
+from evaluation.integrity import integrity_scores
+from evaluation.runs import fuse
+from recordings.faults import DEFAULTS, inject, parse_fault
+from recordings.format import load
+
+G = np.array([0.0, 0.0, -9.81])
+
+
+# ------------------------------------------------------------------------------ monitor
+
+
+def test_monitor_imu_gap_backwards_spike_and_frozen() -> None:
+    m = IntegrityMonitor()
+    t = 100.0
+    rng = np.random.default_rng(0)
+    for k in range(50):
+        assert m.imu(t + 0.01 * k, rng.normal(0, 0.01, 3), G + rng.normal(0, 0.05, 3))
+    assert not m.active
+    assert m.imu_interval == pytest.approx(0.01)
+    # a gap: used, and declared
+    assert m.imu(t + 1.0, rng.normal(0, 0.01, 3), G)
+    assert m.is_active("imu-gap") and "gap of 0.51 s" in m.active["imu-gap"].message
+    # time going backwards: dropped
+    assert not m.imu(t + 0.9, np.zeros(3), G)
+    assert m.is_active("time-backwards")
+    # a spike: dropped; the next regular sample clears it
+    assert not m.imu(t + 1.01, np.array([0.0, 0.0, 20.0]), G)
+    assert m.is_active("imu-implausible")
+    assert m.imu(t + 1.02, np.zeros(3), G)
+    assert not m.is_active("imu-implausible") and not m.is_active("time-backwards")
+    # frozen: the very same sample again and again
+    frozen = (np.array([0.01, 0.02, 0.03]), G + 0.1)
+    ok = [m.imu(t + 1.03 + 0.01 * k, *frozen) for k in range(30)]
+    assert all(ok[:20]) and not any(ok[21:]) and m.is_active("imu-frozen")
+    kinds = [a.kind for a in m.alerts if a.active]
+    assert kinds[:4] == ["imu-gap", "time-backwards", "imu-implausible", "imu-frozen"]
+
+
+def test_monitor_streams_silent_receivers_and_the_clock() -> None:
+    m = IntegrityMonitor()
+    m.imu(10.0, np.zeros(3), G)
+    m.vo_frame(10.0, "")
+    for k in range(1, 4):
+        m.gnss(10.0 + k, [True, True, False, True])
+    assert m.is_active("receiver-3-silent")
+    assert m.is_active("imu-silent") and m.is_active("video-silent")
+    m.gnss(14.0, [True, True, True, True])
+    assert not m.is_active("receiver-3-silent")
+    assert m.clock_jump(15.0, 299_792.458) and "1000.0 µs" in m.active["clock-jump"].message
+    assert not m.clock_jump(16.0, 2.0)
+    assert not m.gnss(13.0, [True] * 4)  # an epoch from the past is dropped
+
+
+def test_protection_level_and_trust() -> None:
+    cfg = IntegrityConfig()
+    m = IntegrityMonitor(cfg)
+    m.imu(1.0, np.zeros(3), G)
+    cov = np.diag([0.01**2, 0.02**2, 0.05**2])
+    ok = m.assess(1.0, "fused", cov, math.radians(0.05) ** 2)
+    assert ok.trusted and ok.mode == "fused" and not ok.reasons
+    assert ok.hpl_m == pytest.approx(cfg.k(2) * 0.02 + cfg.undetected_horizontal_m)
+    assert cfg.k(2) > 5.0  # an integrity risk of 1e-7 is far out in the tails
+    wide = m.assess(1.0, "fused", cov * 400, math.radians(0.05) ** 2)
+    assert not wide.trusted and "alert limit" in wide.reasons[0]
+    assert not m.assess(1.0, "aligning", cov, 1e-8).trusted
+    assert m.assess(1.0, "coasting", cov, 1e-8).trusted
+    m.raise_fault("vo-inconsistent", 1.0, "VO scale off")
+    assert not m.assess(1.0, "fused", cov, 1e-8).trusted
+
+
+def test_frame_check() -> None:
+    check = FrameCheck()
+    rng = np.random.default_rng(1)
+    image = rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)
+    assert check.problem(image) == ""
+    assert "frozen" in check.problem(image.copy())
+    assert "black" in check.problem(np.zeros_like(image))
+    assert "blinded" in check.problem(np.full_like(image, 252))
+    assert check.problem(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)) == ""
+
+
+# ------------------------------------------------------------------------ fault injection
+
+
+def test_fault_names_and_parameters() -> None:
+    assert parse_fault("imu-gap").params == DEFAULTS["imu-gap"]
+    assert parse_fault("imu-gap:5").params == (5.0, 5.0)
+    assert parse_fault("clock-jump:6:0.5").name == "clock-jump:6:0.5"
+    for bad, msg in (("imu-holes", "unknown fault"), ("imu-gap:1:2:3", "at most 2"),
+                     ("imu-gap:x", "numbers"), ("imu-gap:nan", "finite")):
+        with pytest.raises(ValueError, match=msg):
+            parse_fault(bad)
+
+
+def test_injected_damage_is_what_it_says(sim_recording: Path, tmp_path: Path) -> None:
+    rec = load(sim_recording)
+    t0 = rec.manifest.start_gpst
+    gap = load(inject(sim_recording, "imu-gap:6:1", tmp_path / "gap"))
+    assert len(gap.imu) == len(rec.imu) - 100
+    assert not np.any((gap.imu.time >= t0 + 6) & (gap.imu.time < t0 + 7))
+    assert (sim_recording / "imu.csv").read_text() != (tmp_path / "gap" / "imu.csv").read_text()
+    assert load(sim_recording).imu.time.size == rec.imu.time.size  # the original untouched
+    missing = load(inject(sim_recording, "receiver-missing", tmp_path / "missing"))
+    assert len(missing.gnss) == 3 and len(missing.calibration.antennas_body) == 3
+    assert any("3 receivers" in w for w in missing.warnings)
+    back = load(inject(sim_recording, "imu-backwards:6:0.3", tmp_path / "back"))
+    assert any("do not increase" in w for w in back.warnings)
+    black = load(inject(sim_recording, "video-black:6:1", tmp_path / "black"))
+    frames = {k: img for k, _t, img in black.frames() if 58 <= k <= 61}
+    assert frames[61].max() == 0 and frames[59].mean() > 20
+    end = load(inject(sim_recording, "imu-end:7", tmp_path / "end"))
+    assert any("imu.csv ends at 7.0 s" in w for w in end.warnings)
+    assert load(inject(sim_recording, "video-end:7", tmp_path / "vend")).warnings
+
+
+# ----------------------------------------------------------- faults through the engine path
+
+# Every fault at 6 s of the 12 s recording (the fusion is trusted from ~3 s), and the alert the
+# engine must raise for it (None: the fusion rides it out; it must still never mislead).
+FAULT_CASES = {
+    "imu-gap:6:1": "imu-gap",
+    "imu-end:7": "imu-silent",
+    "imu-frozen:6:1": "imu-frozen",
+    "imu-spikes:6:1": "imu-implausible",
+    "imu-saturated:6:1": "imu-implausible",
+    "imu-backwards:6:0.3": "time-backwards",
+    "receiver-missing": "receiver-4-silent",
+    "receiver-silent:2:6:3": "receiver-2-silent",
+    "cycle-slips:6": "cycle-slips",
+    "clock-jump:6:1": "clock-jump",
+    "spp-outlier:6:3": "spp-implausible",
+    "half-sky": None,
+    "video-zeroed:1:1": "video-silent",
+    "video-end:7": "video-silent",
+    "video-frozen:6:1": "video",
+    "video-black:6:1": "video",
+    "video-blinded:6:1": "video",
+}
+assert {parse_fault(f).kind for f in FAULT_CASES} == set(DEFAULTS)
+
+
+# The heading converges to its 1° alert limit in ~15 s: within the 12 s recording the states
+# are trusted (and so can mislead) only with a wider heading limit.
+OPTIONS = dict(integrity=IntegrityConfig(heading_alert_limit_deg=3.0))
+
+
+@pytest.fixture(scope="module")
+def clean_vo(sim_recording: Path) -> VoPass:
+    """The undamaged recording's VO pass, reused for faults that leave the video alone."""
+    return run_vo(load(sim_recording))
+
+
+@pytest.mark.parametrize("fault", list(FAULT_CASES))
+def test_fault_is_declared_and_never_misleads(fault: str, sim_recording: Path,
+                                              clean_vo: VoPass, tmp_path: Path) -> None:
+    rec = load(inject(sim_recording, fault, tmp_path / "rec"))
+    vo = run_vo(rec) if fault.startswith("video") else clean_vo
+    start = rec.manifest.start_gpst
+    run = fuse(rec, vo, FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m,
+                                      **OPTIONS), fault, start + rec.manifest.duration_s + 1e-9)
+    ig = integrity_scores(rec, run, start + 3.0, start + rec.manifest.duration_s)
+    raised = {a.kind for a in ig.alerts if a.active}
+    if fault == "receiver-missing":
+        # three antennas: no compass fix of its own, and no course start within 12 s —
+        # declared, and no position given (never a confident wrong one)
+        assert run.origin_time is None and ig.available_fraction == 0.0
+        assert "receiver-4-silent" in raised
+        return
+    assert run.origin_time is not None, "the fusion never started"
+    # trusted before the fault (the misleading count below means something)
+    assert ig.available_fraction > 0.1, ig
+    expected = FAULT_CASES[fault]
+    if expected is not None:
+        assert expected in raised, (fault, raised)
+    assert ig.misleading_epochs == 0, (fault, ig)
+    assert ig.hazardous_epochs == 0
+    # Declared within a second: the first alert of the expected kind near the fault's time.
+    if expected is not None and fault not in ("receiver-missing", "video-zeroed:1:1"):
+        first = min(a.t for a in ig.alerts if a.kind == expected and a.active)
+        p = parse_fault(fault).params
+        fault_t = p[1] if fault.startswith("receiver-silent") else p[0]
+        assert fault_t - 0.1 <= first <= fault_t + 1.0 + (2.0 if "receiver" in fault else 0), \
+            (fault, first)
+
+
+def test_the_undamaged_recording_raises_nothing(sim_recording: Path, clean_vo: VoPass) -> None:
+    rec = load(sim_recording)
+    start = rec.manifest.start_gpst
+    run = fuse(rec, clean_vo, FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m,
+                                            **OPTIONS), "clean",
+               start + rec.manifest.duration_s + 1e-9)
+    ig = integrity_scores(rec, run, start + 3.0, start + rec.manifest.duration_s)
+    assert not [a for a in ig.alerts if a.active], ig.alerts
+    assert ig.misleading_epochs == 0 and ig.available_fraction > 0.9
+    assert ig.worst_error_to_protection < 1.0
