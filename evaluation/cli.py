@@ -6,11 +6,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 from recordings import DEFAULT_RECORDING
 
 from .baseline import baseline_report, format_baseline_report, read_position
+from .campaign import format_summary, run_campaign, spec_from_args, write_plots
 from .compass import compass_report, format_compass_report
 from .records import to_json
 from .report import INIT_S, ReportOptions, replay_report
@@ -113,7 +115,56 @@ def add_baseline_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPar
     return p
 
 
+def cmd_campaign(args: argparse.Namespace) -> int:
+    spec = spec_from_args(args.scenario, args.seeds, args.duration, args.faults, args.options,
+                          tracking=not args.no_tracking, quick=args.quick)
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers {args.workers}: must be at least 1")
+    tic = time.monotonic()
+    summary = run_campaign(spec, args.out, cache=args.cache, workers=args.workers,
+                           scheduler=args.scheduler, show_progress=not args.quiet)
+    if args.plots:
+        write_plots(Path(args.out), spec.tasks())
+    print(format_summary(summary))
+    print(f"{summary['succeeded']} of {summary['tasks']} tasks in "
+          f"{time.monotonic() - tic:.0f} s; {args.out}/summary.md", file=sys.stderr)
+    return 0 if not summary["failed"] else 1
+
+
+def add_campaign_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``berthing-aid campaign``."""
+    p = sub.add_parser("campaign", help="the replay evaluation over many simulated berthings "
+                                        "and injected faults, on a Dask cluster")
+    p.add_argument("--scenario", default="small-boat", help="scenario name(s), comma-separated")
+    p.add_argument("--seeds", default="1-3", help="seeds, e.g. 1-20 or 1,4,7-9")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="seconds per recording (default: the scenario's)")
+    p.add_argument("--faults", default=None, metavar="LIST",
+                   help="faults injected into each recording: all, or KIND[:a:b],... "
+                        "(clean = none); default: none")
+    p.add_argument("--options", default=None, metavar="JSON",
+                   help="FusionOptions fields for every task (a parameter sweep)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None,
+                       help="local cluster of N worker processes (default: one per core)")
+    where.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                       help="a running Dask scheduler (workers: dask worker tcp://HOST:PORT)")
+    p.add_argument("--out", required=True, help="output directory (resumable)")
+    p.add_argument("--cache", default=None,
+                   help="simulated recordings (default OUT/recordings; a path every worker "
+                        "reaches when on a cluster)")
+    p.add_argument("--plots", action="store_true", help="box plots and the Stanford scatter")
+    p.add_argument("--no-tracking", action="store_true",
+                   help="skip the designated-target and landmark evaluations")
+    p.add_argument("--quick", action="store_true",
+                   help="table 17 and the integrity only (no satellite subsets, fig. 14)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_campaign)
+    return p
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_baseline_parser(sub)
+    add_campaign_parser(sub)
     add_compass_parser(sub)
     add_replay_parser(sub)

@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
 import numpy as np  # noqa: E402
 
+from .integrity import stanford_points  # noqa: E402
 from .report import MAIN, Evaluated  # noqa: E402
 from .scoring import quay_line  # noqa: E402
 from .text import f  # noqa: E402
@@ -30,6 +31,8 @@ def write_plots(out: Path, ev: Evaluated) -> list[str]:
     ss = ev.report.single_satellite_heading
     if ss is not None and ss.satellites:
         written.append(_single_satellite(out, ev))
+    if ev.report.integrity is not None:
+        written.append(_stanford(out, ev))
     return written
 
 
@@ -166,3 +169,41 @@ def _single_satellite(out: Path, ev: Evaluated) -> str:
     axes[1].set_xticklabels([f"{e.sat} ({f(e.elevation_deg, '.0f')}°)" for e in sats])
     axes[0].legend(fontsize=7, ncol=4)
     return _save(fig, out / "single_satellite_heading.png")
+
+
+def _stanford(out: Path, ev: Evaluated) -> str:
+    """Error against protection level (the Stanford diagram): below the diagonal the level
+    bounds the error; above it, a trusted state is misleading (and hazardous beyond the alert
+    limit); beyond the alert limit on the level's axis the system is unavailable."""
+    ig = ev.report.integrity
+    assert ig is not None
+    err, pl, trusted = stanford_points(ev.rs.rec, ev.runs[MAIN],
+                                       ev.rs.start + ev.report.init_s)
+    al = ig.alert_limit_m
+    top = max(1.0, float(np.nanmax(err, initial=0.0)), float(np.nanmax(pl, initial=0.0))) * 2
+    lo = 1e-3
+    fig, ax = plt.subplots(figsize=(7, 6.5))
+    ax.fill_between([lo, al], [lo, al], [top, top], color="tab:red", alpha=0.12,
+                    label="misleading (error > PL)")
+    ax.fill_between([lo, al], [al, al], [top, top], color="tab:red", alpha=0.25,
+                    label="hazardous (and error > alert limit)")
+    ax.fill_between([al, top], [lo, lo], [top, top], color="tab:gray", alpha=0.15,
+                    label="unavailable (PL > alert limit)")
+    ax.plot([lo, top], [lo, top], "k-", lw=0.8)
+    ax.axvline(al, color="k", ls="--", lw=0.8)
+    ax.axhline(al, color="k", ls=":", lw=0.8)
+    ax.scatter(np.maximum(pl[trusted], lo), np.maximum(err[trusted], lo), s=6,
+               c="tab:green", label=f"trusted ({int(trusted.sum())})")
+    ax.scatter(np.maximum(pl[~trusted], lo), np.maximum(err[~trusted], lo), s=6,
+               c="tab:orange", label=f"not trusted ({int((~trusted).sum())})")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(lo, top)
+    ax.set_ylim(lo, top)
+    ax.set_xlabel("horizontal protection level (m)")
+    ax.set_ylabel("true horizontal error (m)")
+    ax.set_title(f"{ev.report.recording}: Stanford diagram (misleading {ig.misleading_epochs}, "
+                 f"available {100 * ig.available_fraction:.0f} %)")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.grid(alpha=0.3, which="both")
+    return _save(fig, out / "stanford.png")

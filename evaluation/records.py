@@ -323,6 +323,37 @@ class LandmarkReport:
     reason: str | None = None
 
 
+# ---------------------------------------------------------------------------- integrity
+
+
+@dataclass
+class AlertRecord:
+    t: float  # s after the recording start
+    kind: str
+    message: str
+    active: bool = True  # False: the fault cleared
+
+
+@dataclass
+class IntegrityReport:
+    """The integrity of the INS+VO+CPP run over the scored window: misleading = the true
+    error beyond the protection level while the state is trusted; hazardous = that, and
+    beyond the alert limit."""
+
+    alert_limit_m: float
+    heading_alert_limit_deg: float
+    epochs: int  # frames expected in the window
+    available_fraction: float  # trusted frames / epochs
+    misleading_epochs: int
+    hazardous_epochs: int
+    misleading_heading_epochs: int = 0
+    modes: dict[str, int] = field(default_factory=dict)  # frames by declared mode
+    trusted_horizontal_std_m: float | None = None  # accuracy over the trusted frames
+    trusted_horizontal_max_m: float | None = None
+    worst_error_to_protection: float | None = None  # max error/HPL over the trusted frames
+    alerts: list[AlertRecord] = field(default_factory=list)
+
+
 # ------------------------------------------------------------------------------ report
 
 
@@ -345,6 +376,7 @@ class ReplayReport:
     structure: StructureScores | None = None
     tracking: TrackingReport | None = None
     landmarks: LandmarkReport | None = None
+    integrity: IntegrityReport | None = None
     realtime_factor: float | None = None
     timing_ms: dict[str, float] = field(default_factory=dict)
     plots: list[str] = field(default_factory=list)

@@ -35,6 +35,7 @@ from estimator.pipeline import FusionOptions
 from recordings.format import Recording, load
 
 from .heading import OneSatelliteHeading
+from .integrity import integrity_scores
 from .landmarks import evaluate_landmarks
 from .records import (
     ClockDrift,
@@ -122,16 +123,20 @@ def evaluate(rec: Recording, opt: ReportOptions, progress: Callable[[str], None]
     if main.origin_time is None:
         raise ValueError(f"{rec.manifest.name}: the fusion never started (no GNSS compass fix "
                          "and no course over ground)")
-    n_window = int(np.sum(main.time >= t0 - 1e-6))
+    # The window's frames as the recording lists them: a video that ends early, or states
+    # that are not positions (no IMU), show as missing coverage, not as a shorter window.
+    frame_t = np.asarray(rec.frame_times, float)
+    n_window = int(np.sum((frame_t >= t0 - 1e-6) & (frame_t <= rs.end + 1e-9)))
     report = ReplayReport(recording=str(getattr(rec.manifest, "name", "?")),
                           duration_s=rs.duration, init_s=opt.init_s,
-                          window_s=[t0 - rs.start, rs.end - rs.start],
+                          window_s=_scored_window(main, t0, rs),
                           origin_time_s=main.origin_time - rs.start,
                           alignment="translation only, by the reference position at the "
                                     "fusion's origin time", methods={})
     ev = Evaluated(report, {}, {}, None, rs)
     _table17(ev, opt, t0, n_window)
     _tables18_21(ev, opt, t0, n_window)
+    report.integrity = integrity_scores(rec, main, t0, rs.end)
     report.structure, ev.structure_plot = structure_scores(rec, main)
     if opt.tracking:
         _targets_and_landmarks(ev, opt, full, progress)
@@ -155,6 +160,15 @@ def _run_set(rec: Recording, opt: ReportOptions, progress: Callable[[str], None]
              f"({vo.vo_ms:.1f} ms/frame VO, {vo.decode_ms:.1f} ms decoding), tracking "
              f"{100 * tracking / n:.0f} %, {len({o.segment for o in vo.outputs})} segment(s)")
     return rs
+
+
+def _scored_window(main: FusionRun, t0: float, rs: RunSet) -> list[float]:
+    """[first, last] frame (s after the start) with a position in the window: the window
+    actually scored (the nominal one when nothing was)."""
+    scored = (main.time >= t0 - 1e-6) & np.isfinite(main.position).all(axis=1)
+    if not scored.any():
+        return [t0 - rs.start, rs.end - rs.start]
+    return [float(main.time[scored][0] - rs.start), float(main.time[scored][-1] - rs.start)]
 
 
 def _lean(opt: ReportOptions, init_s: float, **kw: object) -> FusionOptions:

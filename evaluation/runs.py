@@ -22,10 +22,12 @@ import numpy as np
 from engine.driver import VoPass, dispatch, is_frame, recording_messages
 from engine.messages import GnssMessage, group_gnss
 from engine.targets import Structure
+from estimator.integrity import Alert
 from estimator.pipeline import Fusion, FusionOptions
 from recordings.format import Recording
 
 VIEW_CHECKPOINTS = (1, 2, 3, 5, 10, 20, 50, 100, 200, 400)
+STALE_S = 0.15  # a state further than this from its frame's time is no position (no IMU)
 TRUTH_STRIDE = 5  # frames between the landmarks' last views kept (their rendered truth)
 
 
@@ -46,6 +48,7 @@ class FusionRun:
     # checkpoint → (ids, reported positions) of the landmarks reaching that many views
     view_history: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     last_views: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)  # id → (k, uv)
+    alerts: list[Alert] = field(default_factory=list)  # the engine's faults, raised and cleared
 
     def __post_init__(self) -> None:
         n = len(self.time)
@@ -53,8 +56,8 @@ class FusionRun:
         self.C = np.full((n, 3, 3), np.nan)
         self.scale = np.full(n, np.nan)  # VO scale (m per VO unit), NaN when not tracking
         for k, s in enumerate(self.states):
-            if s is None:
-                continue
+            if s is None or abs(float(s.time) - self.time[k]) > STALE_S:
+                continue  # no position at this frame
             self.position[k], self.velocity[k] = s.position_ned, s.velocity_ned
             self.euler[k], self.C[k] = s.euler, s.C_body_to_level
             if s.status.scale is not None:
@@ -96,7 +99,7 @@ def fuse(rec: Recording, vo: VoPass, options: FusionOptions, label: str, until: 
                     last_views[int(pid)] = (k, np.asarray(uv, float))
     run = FusionRun(label, np.array([o.time for o in frames], float), states,
                     engine.origin_time, time.perf_counter() - tic, dict(engine.timing()),
-                    structures=structures, last_views=last_views)
+                    structures=structures, last_views=last_views, alerts=engine.alerts())
     if engine.origin_time is not None:
         run.structure = engine.structure()
         run.structure_raw = engine.structure(refined=False)

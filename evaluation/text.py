@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from .records import (
+    IntegrityReport,
     LandmarkReport,
     ReplayReport,
     StructureScores,
@@ -28,6 +29,8 @@ def format_replay_report(report: ReplayReport) -> str:
     lines += _tables18_20(report)
     lines += _table21(report)
     lines += _fig14(report)
+    if report.integrity is not None:
+        lines += _integrity(report.integrity)
     if report.structure is not None:
         lines += _structure(report.structure)
     t = report.timing_ms
@@ -115,6 +118,25 @@ def _fig14(report: ReplayReport) -> list[str]:
         lines.append(f"  {e.sat:<4} {f(e.elevation_deg, '4.0f')}  "
                      + " ".join(f"{c:>13}" for c in cells)
                      + f"  {f(e.pipeline_all_baselines_std_deg, '8.3f')}")
+    return lines
+
+
+def _integrity(ig: IntegrityReport) -> list[str]:
+    modes = ", ".join(f"{m} {n}" for m, n in ig.modes.items())
+    lines = ["", f"integrity (INS+VO+CPP; alert limits {ig.alert_limit_m:g} m, "
+                 f"{ig.heading_alert_limit_deg:g}°): {ig.epochs} frames in the window, "
+                 f"available (trusted) {100 * ig.available_fraction:.1f} %, misleading "
+                 f"{ig.misleading_epochs} (heading {ig.misleading_heading_epochs}), hazardous "
+                 f"{ig.hazardous_epochs}",
+             f"  modes: {modes or '-'}; trusted frames: horizontal σ "
+             f"{f(ig.trusted_horizontal_std_m, '.4f')} m, max "
+             f"{f(ig.trusted_horizontal_max_m, '.4f')} m, worst error/HPL "
+             f"{f(ig.worst_error_to_protection, '.2f')}"]
+    raised = [a for a in ig.alerts if a.active]
+    lines.append(f"  alerts: {len(raised)}" + ("" if raised else " (none)"))
+    lines += [f"    {a.t:7.2f} s  {a.kind:<18} {a.message}" for a in raised[:20]]
+    if len(raised) > 20:
+        lines.append(f"    … {len(raised) - 20} more")
     return lines
 
 
