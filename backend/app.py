@@ -18,6 +18,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from engine.driver import EngineFactory, create_engine
+from estimator.integrity import IntegrityConfig
 from recordings import DEFAULT_RECORDING
 
 from . import routes_recordings, routes_sessions, routes_targets, routes_viewer
@@ -45,13 +46,15 @@ class Settings:
     checkpoint_interval_s: float | None = 10.0  # engine copies for backward seeks; None: off
     abandoned_after_s: float = 120.0  # at the session limit, reclaim one unwatched this long
     announce: bool = False  # print the 3-D viewer's URL once it listens (the CLI does)
+    integrity: IntegrityConfig | None = None  # alert limits (None: the engine's defaults)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     catalog = RecordingCatalog(settings.recordings_dir, settings.default_recording)
     manager = SessionManager(catalog, settings.engine_factory, settings.max_sessions,
-                             settings.checkpoint_interval_s, settings.abandoned_after_s)
+                             settings.checkpoint_interval_s, settings.abandoned_after_s,
+                             settings.integrity)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -33,6 +33,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_inject(args: argparse.Namespace) -> int:
+    from recordings.faults import inject
+
+    out = inject(_recording_arg(args.recording), args.fault, args.out)
+    print(f"wrote {out}")
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from recordings.format import format_summary, load, summary
 
@@ -54,9 +62,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
     recordings_dir = Path(args.recordings_dir) if args.recordings_dir else None
     if recordings_dir is not None and not recordings_dir.is_dir():
         raise ValueError(f"--recordings-dir {recordings_dir}: not a directory")
+    from estimator.integrity import IntegrityConfig
+
+    for name, value in (("--alert-limit", args.alert_limit),
+                        ("--heading-alert-limit", args.heading_alert_limit)):
+        if not (value > 0 and value < 1e3):
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
+    integrity = IntegrityConfig(alert_limit_m=args.alert_limit,
+                                heading_alert_limit_deg=args.heading_alert_limit)
     settings = Settings(recordings_dir=recordings_dir, default_recording=recording,
                         viser_host=args.host, viser_port=None if args.no_viewer
-                        else args.viser_port, announce=True)
+                        else args.viser_port, announce=True, integrity=integrity)
     if args.host not in ("127.0.0.1", "localhost", "::1"):
         print(f"warning: listening on {args.host}: anyone who reaches this machine can open "
               "and control sessions", file=sys.stderr)
@@ -79,6 +95,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_simulate)
 
+    from recordings.faults import FAULTS
+
+    p = sub.add_parser("inject", help="a damaged copy of a recording (fault injection)")
+    p.add_argument("recording", nargs="?", help="recording directory (default: bundled)")
+    p.add_argument("--fault", required=True, metavar="KIND[:a:b]",
+                   help=f"one of {', '.join(FAULTS)}; parameters in s after the start "
+                        "(see recordings/faults.py)")
+    p.add_argument("--out", required=True, help="output directory (new or empty)")
+    p.set_defaults(func=cmd_inject)
+
     p = sub.add_parser("info", help="what a recording holds")
     p.add_argument("recording", nargs="?", help="recording directory (default: bundled)")
     p.add_argument("--json", action="store_true")
@@ -93,6 +119,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-viewer", action="store_true", help="do not start the 3-D viewer")
     p.add_argument("--recordings-dir", default=None,
                    help="directory whose recordings (sub-directories) can be replayed too")
+    p.add_argument("--alert-limit", type=float, default=0.5, metavar="M",
+                   help="horizontal alert limit: a protection level beyond it is not trusted "
+                        "(default 0.5 m)")
+    p.add_argument("--heading-alert-limit", type=float, default=1.0, metavar="DEG",
+                   help="heading alert limit (default 1 deg)")
     p.set_defaults(func=cmd_serve)
 
     from evaluation.cli import add_parsers

@@ -113,6 +113,19 @@ class ControlRequest(Strict):
         return self
 
 
+class IntegrityModel(BaseModel):
+    mode: Literal["fused", "coasting", "aligning", "no position"] = Field(
+        description="fused: carrier phase drives the trajectory; coasting: INS (+VO) without "
+                    "it; aligning: heading from the course only; no position: nothing to trust")
+    trusted: bool = Field(description="the mode is usable, no critical fault is active and both "
+                                      "protection levels are within their alert limits")
+    reasons: list[str] = Field(description="active faults and exceeded limits, most severe first")
+    hpl_m: float | None = Field(description="horizontal protection level (m)")
+    heading_pl_deg: float | None = Field(description="heading protection level (deg)")
+    alert_limit_m: float
+    heading_alert_limit_deg: float
+
+
 class FusionStatusModel(BaseModel):
     phase: str = Field(description="initialising | aligning | fused | degraded")
     compass_fixed: bool
@@ -121,6 +134,22 @@ class FusionStatusModel(BaseModel):
     scale: float | None
     scale_converged: bool
     message: str
+    integrity: IntegrityModel | None = None
+
+
+class Alarm(BaseModel):
+    id: str
+    kind: str = Field(description="integrity, or a fault kind (imu-gap, receiver-4-silent, …)")
+    severity: Literal["alarm", "warning", "caution"] = Field(
+        description="alarm: sounds until acknowledged; warning: shown; caution: listed")
+    message: str
+    since_s: float = Field(description="s since the recording start")
+    active: bool
+    acknowledged: bool
+
+
+class AlarmList(BaseModel):
+    alarms: list[Alarm]
 
 
 class WaterLevelModel(BaseModel):
@@ -433,3 +462,4 @@ class StreamFrameHeader(BaseModel):
     pose: Pose | None
     status: FusionStatusModel | None
     overlay: Overlay | None
+    alarms: list[Alarm] = Field(default_factory=list, description="active alarms")

@@ -89,6 +89,7 @@ def pose_dict(state: Any, start_gpst: float) -> dict[str, Any]:
 
 
 def status_dict(status: Any) -> dict[str, Any]:
+    integrity = getattr(status, "integrity", None)
     return {
         "phase": str(status.phase),
         "compass_fixed": bool(status.compass_fixed),
@@ -97,7 +98,22 @@ def status_dict(status: Any) -> dict[str, Any]:
         "scale": None if status.scale is None else float(status.scale),
         "scale_converged": bool(status.scale_converged),
         "message": str(status.message),
+        "integrity": None if integrity is None else integrity_dict(integrity),
     }
+
+
+def integrity_dict(integrity: Any) -> dict[str, Any]:
+    """JSON form of ``estimator.integrity.Integrity``."""
+
+    def level(x: float | None, digits: int) -> float | None:
+        return None if x is None or not np.isfinite(x) else round(float(x), digits)
+
+    return {"mode": integrity.mode, "trusted": bool(integrity.trusted),
+            "reasons": [str(r) for r in integrity.reasons],
+            "hpl_m": level(integrity.hpl_m, 3),
+            "heading_pl_deg": level(integrity.heading_pl_deg, 3),
+            "alert_limit_m": float(integrity.alert_limit_m),
+            "heading_alert_limit_deg": float(integrity.heading_alert_limit_deg)}
 
 
 # ----------------------------------------------------------------------------------- grid

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query, Response, WebSocket, status
+from fastapi import APIRouter, Path, Query, Response, WebSocket, status
 from fastapi.concurrency import run_in_threadpool
 
 from .deps import ManagerDep, SessionDep, errors
+from .errors import NotFound
 from .geometry import hull_outline_ne
 from .models import (
+    Alarm,
+    AlarmList,
     ControlRequest,
     Outline,
     PoseResponse,
@@ -140,6 +143,26 @@ def get_report(session: SessionDep,
     first pose (the engine integrates from its own origin); also the unaligned error of the
     fused latitude/longitude. 404 when the recording has no reference."""
     return Report(**session.report(after))
+
+
+@router.get("/{session_id}/alarms", response_model=AlarmList, responses=errors(404),
+            summary="Alarms: integrity and faults (active and cleared)")
+def get_alarms(session: SessionDep,
+               active: Annotated[bool, Query(description="only the active ones")] = False
+               ) -> AlarmList:
+    alarms = session.alarms.active() if active else session.alarms.all()
+    return AlarmList(alarms=[Alarm(**a) for a in alarms])
+
+
+@router.post("/{session_id}/alarms/{alarm_id}/acknowledge", response_model=Alarm,
+             responses=errors(404), summary="Acknowledge an alarm (it stops sounding)")
+def acknowledge_alarm(session: SessionDep,
+                      alarm_id: Annotated[str, Path(max_length=16)]) -> Alarm:
+    alarm = session.alarms.acknowledge(alarm_id)
+    if alarm is None:
+        raise NotFound(f"no alarm {alarm_id!r} in this session")
+    session.redraw_if_paused()
+    return Alarm(**alarm)
 
 
 @router.websocket("/{session_id}/stream")

@@ -29,10 +29,12 @@ import numpy as np
 from engine.camera import Projector
 from engine.driver import EngineFactory, FusionEngine
 from engine.targets import Structure
+from estimator.integrity import IntegrityConfig
 from estimator.prediction import predict_outlines
 from estimator.tracking import TargetParams
 from recordings.format import Recording, RecordingError
 
+from .alarms import AlarmBook
 from .berth import Berth
 from .catalog import RecordingCatalog
 from .errors import Conflict, NotFound, TooMany, Unprocessable
@@ -83,7 +85,8 @@ class Session:
                  engine_factory: EngineFactory, options: dict[str, Any],
                  speed: float | None, prediction_seconds: int = 5,
                  checkpoint_interval_s: float | None = 10.0,
-                 body_height_m: float | None = None) -> None:
+                 body_height_m: float | None = None,
+                 integrity: IntegrityConfig | None = None) -> None:
         self.id = session_id
         self.name = name
         self.rec = rec
@@ -100,6 +103,7 @@ class Session:
         self.targets = TargetBook(rec, self.projector, self.lock)
         self.berth = Berth(rec, self.projector, self.water.down_m,
                            self.history.origin_in_recording, self.lock)
+        self.alarms = AlarmBook(self.start_gpst)
         self._structure = Structure(None)
         self._frames: deque[tuple[int, float, np.ndarray]] = deque(maxlen=FRAME_BUFFER)
         self._subscribers: set[Subscriber] = set()
@@ -112,6 +116,8 @@ class Session:
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
         engine_options = dict(options)
+        if integrity is not None:
+            engine_options["integrity"] = integrity
         if self.water.known:
             # The landmark refinement drops points on or below the water (reflections).
             engine_options.setdefault("body_origin_height_m", self.water.down_m)
@@ -138,6 +144,7 @@ class Session:
 
     def on_frame(self, result: FrameResult, engine: FusionEngine) -> None:
         structure = None
+        alerts = list(getattr(engine, "alerts", list)())
         if result.live or result.index % STRUCTURE_EVERY == 0:
             try:
                 structure = Structure.of(engine, result.t)
@@ -151,6 +158,7 @@ class Session:
             self._frames.append((result.index, result.t, result.image))
             if state is not None:
                 self.history.append(result.t, state)
+                self.alarms.update(state, alerts)
                 self.targets.on_frame(state, result.index, result.image, self._structure)
             watched = bool(self._subscribers)
             listeners = list(self.frame_listeners)
@@ -171,6 +179,7 @@ class Session:
         with self.lock:
             self.history.rewind(t)
             self.targets.rewind(t)
+            self.alarms.rewind()
             self._frames.clear()
 
     def on_state(self, state: ReplayState) -> None:
@@ -243,6 +252,7 @@ class Session:
             "replay": {"state": replay["state"], "speed": replay["speed"],
                        "lag_s": round(replay["lag_s"], 3)},
             "processed_at": result.processed_wall,
+            "alarms": self.alarms.active(),
         }
         if state is None:
             header.update(pose=None, status=None, overlay=None)
@@ -409,8 +419,10 @@ class SessionManager:
 
     def __init__(self, catalog: RecordingCatalog, engine_factory: EngineFactory,
                  max_sessions: int = 4, checkpoint_interval_s: float | None = 10.0,
-                 abandoned_after_s: float = 120.0) -> None:
+                 abandoned_after_s: float = 120.0,
+                 integrity: IntegrityConfig | None = None) -> None:
         self.catalog = catalog
+        self.integrity = integrity  # alert limits of every session (None: the engine's own)
         self.engine_factory = engine_factory
         self.max_sessions = max_sessions
         self.abandoned_after_s = abandoned_after_s
@@ -431,7 +443,8 @@ class SessionManager:
                           f"{self.abandoned_after_s:g} s; delete one first")
         rec = self.catalog.load(recording)
         session = Session(uuid.uuid4().hex[:12], recording, rec, self.engine_factory, options,
-                          speed, prediction_seconds, self.checkpoint_interval_s, body_height_m)
+                          speed, prediction_seconds, self.checkpoint_interval_s, body_height_m,
+                          self.integrity)
         with self._lock:
             self._sessions[session.id] = session
         for listener in self.created_listeners:

@@ -63,16 +63,33 @@ def recording(sim_recording: Path) -> Path:
     return sim_recording
 
 
+FAULTY = "small-boat-12s-imu-gap"
+
+
 @pytest.fixture(scope="session")
-def server(recording: Path) -> Iterator[str]:
-    """``berthing-aid serve`` on free loopback ports; yields its base URL."""
+def faulty_recordings(recording: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A directory with a damaged copy of the recording: 2 s of IMU missing from 6 s."""
+    from recordings.faults import inject
+
+    root = tmp_path_factory.mktemp("faulty")
+    inject(recording, "imu-gap:6:2", root / FAULTY)
+    return root
+
+
+@pytest.fixture(scope="session")
+def server(recording: Path, faulty_recordings: Path) -> Iterator[str]:
+    """``berthing-aid serve`` on free loopback ports (the damaged copies listed too); yields
+    its base URL."""
     port, viser_port = _free_port(), _free_port()
     log = (ARTIFACTS / "server.log")
     ARTIFACTS.mkdir(exist_ok=True)
     with log.open("w") as out:
         proc = subprocess.Popen(
             [sys.executable, "-m", "backend.cli", "serve", str(recording), "--host", "127.0.0.1",
-             "--port", str(port), "--viser-port", str(viser_port)],
+             "--port", str(port), "--viser-port", str(viser_port),
+             "--recordings-dir", str(faulty_recordings),
+             # the 12 s recording's heading converges to 1° only after ~15 s: wider for the page
+             "--heading-alert-limit", "3"],
             cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env={**os.environ,
                                                                  "PYTHONUNBUFFERED": "1"})
         base = f"http://127.0.0.1:{port}"
@@ -291,7 +308,9 @@ def test_overlay_greys_out_when_untrusted(page) -> None:
     page.wait_for_function("() => window.berthing.frame.overlay.video.grid.nodes.uv.length > 10")
     pause(page)  # no newer frame may replace the one we draw
     page.evaluate("""() => { const f = window.berthing.frame;
-      window.berthing.show({...f, status: {...f.status, phase: 'aligning', compass_fixed: false}});
+      window.berthing.show({...f, status: {...f.status, phase: 'aligning', compass_fixed: false,
+        integrity: {...f.status.integrity, mode: 'aligning', trusted: false,
+                    reasons: ['no GNSS compass fix: heading from the course over ground']}}});
     }""")
     assert not page.evaluate("() => window.berthing.trust.trusted")
     notice = page.locator("#untrusted")
@@ -303,6 +322,36 @@ def test_overlay_greys_out_when_untrusted(page) -> None:
     for r, g, b, _a in drawn:
         assert max(r, g, b) - min(r, g, b) < 30, f"grid not grey when untrusted: {drawn[:5]}"
     shot(page, "02_untrusted_grey")
+
+
+def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server: str) -> None:
+    """2 s of IMU missing from 6 s: the page says "no position" within a second, greys the
+    overlay, raises a sounding integrity alarm the officer acknowledges, and trusts the pose
+    again once the fusion has recovered."""
+    pg = _open_page(browser, server, 1920, 1080, f"?recording={FAULTY}")
+    try:
+        assert wait_frame(pg, "f => f.t > 4 && b.trust.trusted", timeout_s=60)
+        pg.evaluate("() => document.body.click()")  # the user gesture that lets audio start
+        lost = _wait(pg, "!!f && f.t >= 6.0 && !b.trust.trusted", 30, "f")
+        assert lost["t"] <= 6.0 + 0.3 + 1.0, lost["t"]  # IMU silent for 0.3 s, then declared
+        ig = lost["status"]["integrity"]
+        assert ig["mode"] == "no position" and not ig["trusted"]
+        assert any("IMU" in r for r in ig["reasons"])
+        assert "No position" in pg.locator("#untrusted").inner_text()
+        assert pg.locator("#st-integrity").get_attribute("data-level") == "bad"
+        alarm = _wait(pg, "b.alarms.list.some(a => a.kind === 'integrity' && a.active)", 10,
+                      "b.alarms")
+        assert alarm["sounding"] and alarm["beeps"] >= 1
+        assert pg.locator("#alarms").is_visible()
+        shot(pg, "07_integrity_alarm")
+        pg.locator("#alarms li[data-kind=integrity] button").click()
+        _wait(pg, "!b.alarms.sounding", 5)
+        back = _wait(pg, "!!f && f.t > 8.5 && b.trust.trusted", 30, "f")
+        assert back["status"]["integrity"]["mode"] == "fused"
+        _wait(pg, "!b.alarms.list.some(a => a.kind === 'integrity')", 5)
+        shot(pg, "07_integrity_recovered")
+    finally:
+        _close(pg, server)
 
 
 # JS: the overlay canvas at the centre pixel of isolated structure points (no other point

@@ -43,6 +43,8 @@ export const api = {
   deleteTarget: (id, targetId) => request("DELETE", `/api/sessions/${id}/targets/${targetId}`),
   setBerthLine: (id, body) => request("PUT", `/api/sessions/${id}/berth-line`, body),
   clearBerthLine: (id) => request("DELETE", `/api/sessions/${id}/berth-line`),
+  acknowledgeAlarm: (id, alarmId) =>
+    request("POST", `/api/sessions/${id}/alarms/${alarmId}/acknowledge`),
   viewer: () => request("GET", "/api/viewer"),
   followViewer: (session) => request("PUT", "/api/viewer", { session }),
 };

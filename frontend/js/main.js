@@ -2,6 +2,7 @@
 // Each frame message is drawn everywhere (video, overlay, plan, panels) in one go, so all of
 // them always show the same instant.
 
+import { Alarms } from "./alarms.js";
 import { api } from "./api.js";
 import { BirdsEye } from "./birdseye.js";
 import { Controls, fmtTime } from "./controls.js";
@@ -40,6 +41,7 @@ const app = {
 
 const status = new Status(document);
 const panel = new Panel(document);
+const alarms = new Alarms(document, (alarmId) => api.acknowledgeAlarm(app.session?.id, alarmId));
 const plan = new BirdsEye(el.plan);
 const viewer = new Viewer(document);
 const targets = new Targets($("targets"), removeTarget);
@@ -79,6 +81,7 @@ window.berthing = {
   get plan() { return plan.view; },
   get toasts() { return [...toasts]; },
   get stats() { return { frames: stream.frames, dropped: stream.dropped, connection: stream.state }; },
+  get alarms() { return { list: alarms.current, sounding: alarms.sounding, beeps: alarms.beeps }; },
   dropConnection() { stream.ws?.close(); }, // as a network glitch would: the stream reconnects
   show(header) { app.frame = header; render(); }, // draw a given header over the current picture
 };
@@ -106,6 +109,7 @@ function render() {
   document.querySelector(".side").classList.toggle("unreliable", !!f && !app.trust.trusted);
   el.wrap.classList.toggle("alarm", alarm);
   targets.update(f?.overlay?.targets);
+  alarms.update(f?.alarms);
   if (f) controls.setTime(f.t);
   legend(f);
 }

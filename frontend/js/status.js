@@ -14,7 +14,9 @@ const CONN = {
 
 const PHASE_LEVEL = { fused: "ok", degraded: "warn", aligning: "bad", initialising: "bad" };
 
-/** {trusted, reasons (grey-out), advisories} of a frame header. Pure: tested through the page. */
+/** {trusted, reasons (grey-out), advisories} of a frame header. The engine's integrity
+ *  (mode, protection levels, faults) decides; the phase only words it. Pure: tested through
+ *  the page. */
 export function assess(frame) {
   const st = frame?.status;
   const reasons = [];
@@ -23,16 +25,31 @@ export function assess(frame) {
     reasons.push("Initialising — no fused position yet");
     return { trusted: false, reasons, advisories };
   }
-  if (st.phase === "initialising") reasons.push(`Initialising — ${st.message || "waiting for GNSS"}`);
-  else if (st.phase === "aligning") reasons.push("Aligning — no GNSS compass fix yet");
-  if (!st.compass_fixed && st.phase !== "aligning") reasons.push("GNSS compass not fixed — heading unreliable");
-  if (st.phase === "degraded") advisories.push("Degraded — no carrier-phase velocity, position drifting");
+  const ig = st.integrity;
+  if (ig && !ig.trusted) {
+    const mode = MODE_TEXT[ig.mode] || ig.mode;
+    reasons.push(ig.reasons.length ? `${mode} — ${ig.reasons[0]}` : mode);
+    for (const r of ig.reasons.slice(1)) advisories.push(r);
+  } else if (ig) {
+    for (const r of ig.reasons) advisories.push(r); // warnings the fusion works around
+  } else if (st.phase !== "fused" && st.phase !== "degraded") {
+    reasons.push(`${st.phase} — ${st.message || "no trusted position"}`);
+  }
+  if (st.phase === "degraded") advisories.push("Coasting — no carrier-phase velocity, position drifting");
   if (st.vo_status === "lost") advisories.push("Visual odometry lost — 3-D points not updated");
   else if (st.vo_status === "tracking" && !st.scale_converged) {
     advisories.push("VO scale converging — point distances provisional");
   }
   return { trusted: reasons.length === 0, reasons, advisories };
 }
+
+const MODE_TEXT = {
+  fused: "Fused",
+  coasting: "Coasting (no carrier phase)",
+  aligning: "Aligning — no GNSS compass fix",
+  "no position": "No position",
+};
+const MODE_LEVEL = { fused: "ok", coasting: "warn", aligning: "bad", "no position": "bad" };
 
 export class Status {
   constructor(root) {
@@ -55,9 +72,20 @@ export class Status {
     this.trust = assess(frame);
     if (!frame?.pose || !st) {
       for (const id of ["compass", "sats", "vo", "scale"]) this._chip(id, "–", "warn");
+      this._chip("integrity", "no position", "bad");
       this._chip("phase", "initialising", "bad");
     } else {
       this._chip("phase", st.phase, PHASE_LEVEL[st.phase] || "warn", st.message);
+      const ig = st.integrity;
+      if (ig) {
+        const pl = ig.hpl_m == null ? "" : ` ±${ig.hpl_m < 1 ? ig.hpl_m.toFixed(2) : ig.hpl_m.toFixed(1)} m`;
+        this._chip("integrity", `${ig.mode}${pl}`, ig.trusted ? "ok" : MODE_LEVEL[ig.mode] === "warn" ? "warn" : "bad",
+          `protection level ${ig.hpl_m ?? "–"} m (alert limit ${ig.alert_limit_m} m), heading `
+          + `${ig.heading_pl_deg ?? "–"}° (alert limit ${ig.heading_alert_limit_deg}°)`
+          + (ig.reasons.length ? `\n${ig.reasons.join("\n")}` : ""));
+      } else {
+        this._chip("integrity", "–", "warn");
+      }
       this._chip("compass", st.compass_fixed ? "fixed" : "float", st.compass_fixed ? "ok" : "bad");
       // >= 4 satellites keep the carrier-phase velocity (thesis tables 18–19); fewer degrade it
       this._chip("sats", String(st.satellites), st.satellites >= 4 ? "ok" : st.satellites > 0 ? "warn" : "bad");

@@ -1,0 +1,96 @@
+// The alarm list (integrity and faults from the server, each frame): an alarm of severity
+// "alarm" sounds (Web Audio, a two-tone beep every second) until it is acknowledged; an
+// acknowledged alarm stays listed, silent, while it is active. Browsers only start audio after
+// a user gesture: the sound starts on the first click or key anywhere on the page.
+
+export class Alarms {
+  constructor(root, acknowledge) {
+    this.card = root.querySelector("#alarms");
+    this.list = root.querySelector("#alarm-list");
+    this.acknowledge = acknowledge; // (alarmId) => Promise
+    this.current = [];
+    this.ctx = null;
+    this.timer = null;
+    this.sounding = false;
+    this.beeps = 0; // for the tests: how many beeps were played
+    root.querySelector("#alarm-ack-all").addEventListener("click", () => this.acknowledgeAll());
+    const unlock = () => {
+      if (!this.ctx && (window.AudioContext || window.webkitAudioContext)) {
+        this.ctx = new (window.AudioContext || window.webkitAudioContext)();
+      }
+      this.ctx?.resume?.();
+    };
+    window.addEventListener("pointerdown", unlock, { capture: true });
+    window.addEventListener("keydown", unlock, { capture: true });
+  }
+
+  /** The active alarms of a frame header. */
+  update(alarms) {
+    this.current = alarms || [];
+    this.card.hidden = this.current.length === 0;
+    this.list.replaceChildren(...this.current.map((a) => this._item(a)));
+    this._sound(this.current.some((a) => a.severity === "alarm" && !a.acknowledged));
+  }
+
+  async acknowledgeAll() {
+    const open = this.current.filter((a) => !a.acknowledged);
+    for (const a of open) a.acknowledged = true; // silent at once, whatever the network does
+    this.update(this.current);
+    await Promise.allSettled(open.map((a) => this.acknowledge(a.id)));
+  }
+
+  _item(a) {
+    const li = document.createElement("li");
+    li.className = `alarm ${a.severity}${a.acknowledged ? " acked" : ""}`;
+    li.dataset.id = a.id;
+    li.dataset.kind = a.kind;
+    const text = document.createElement("span");
+    text.className = "alarm-text";
+    text.textContent = a.message;
+    const since = document.createElement("span");
+    since.className = "alarm-since muted small";
+    since.textContent = `${a.since_s.toFixed(1)} s`;
+    li.append(text, since);
+    if (!a.acknowledged && a.severity === "alarm") {
+      const b = document.createElement("button");
+      b.className = "btn btn-small";
+      b.textContent = "Ack";
+      b.addEventListener("click", async () => {
+        a.acknowledged = true;
+        this.update(this.current);
+        await this.acknowledge(a.id).catch(() => {});
+      });
+      li.append(b);
+    }
+    return li;
+  }
+
+  _sound(on) {
+    this.sounding = on;
+    if (on && !this.timer) {
+      this._beep();
+      this.timer = setInterval(() => this._beep(), 1000);
+    } else if (!on && this.timer) {
+      clearInterval(this.timer);
+      this.timer = null;
+    }
+  }
+
+  _beep() {
+    this.beeps += 1;
+    const ctx = this.ctx;
+    if (!ctx || ctx.state !== "running") return;
+    const t = ctx.currentTime;
+    for (const [freq, at] of [[880, 0], [660, 0.18]]) {
+      const osc = ctx.createOscillator();
+      const gain = ctx.createGain();
+      osc.frequency.value = freq;
+      gain.gain.setValueAtTime(0.0001, t + at);
+      gain.gain.exponentialRampToValueAtTime(0.2, t + at + 0.02);
+      gain.gain.exponentialRampToValueAtTime(0.0001, t + at + 0.16);
+      osc.connect(gain).connect(ctx.destination);
+      osc.start(t + at);
+      osc.stop(t + at + 0.17);
+    }
+  }
+}
