@@ -85,8 +85,11 @@ class ErrorResponse(BaseModel):
 
     detail: str = Field(description="what is wrong with the request, for a person")
     errors: list[FieldError] = Field(
-        default_factory=list, description="one entry per wrong field (validation errors, "
-                                          "422); empty for the other statuses")
+        default_factory=list,
+        description="one entry per field that breaks the schema (422); empty otherwise — a "
+                    "422 without entries is a request the schema allows that this session "
+                    "cannot serve (a time beyond the recording, a pixel above the horizon), "
+                    "said in `detail`")
 
 
 # ---------------------------------------------------------------------------- recordings
