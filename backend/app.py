@@ -10,11 +10,12 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-from fastapi import FastAPI, Request
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi import Depends, FastAPI
+from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from engine.driver import EngineFactory, create_engine
@@ -22,9 +23,11 @@ from estimator.integrity import IntegrityConfig
 from recordings import DEFAULT_RECORDING
 
 from . import routes_recordings, routes_sessions, routes_targets, routes_viewer
+from .access import Access, TokenGate
 from .catalog import RecordingCatalog
-from .errors import ApiError
-from .models import ServerInfo
+from .errors import install_handlers
+from .http_rules import MethodGate, reject_unknown_query
+from .models import ErrorResponse, ServerInfo
 from .sessions import Session, SessionManager
 
 log = logging.getLogger(__name__)
@@ -47,6 +50,7 @@ class Settings:
     abandoned_after_s: float = 120.0  # at the session limit, reclaim one unwatched this long
     announce: bool = False  # print the 3-D viewer's URL once it listens (the CLI does)
     integrity: IntegrityConfig | None = None  # alert limits (None: the engine's defaults)
+    access: Access = field(default_factory=Access)  # tokens required on /api (none: open)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -83,6 +87,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if view is not None:
                 view.stop()
 
+    # Every route may answer 422 (a wrong field or an unknown query parameter), in the one
+    # error schema; with access control also 401 and 403.
+    responses: dict[int | str, dict[str, Any]] = {
+        422: {"model": ErrorResponse, "description": "a field or parameter is wrong: `errors` "
+                                                     "names each one"}}
+    if settings.access.required:
+        responses[401] = {"model": ErrorResponse, "description": "no or unknown token"}
+        responses[403] = {"model": ErrorResponse, "description": "read-only token"}
     app = FastAPI(
         title="Berthing aid",
         version=VERSION,
@@ -90,19 +102,29 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "streams the pose and the AR berthing overlay.",
         description="Times are seconds since the recording start unless named `gpst`; "
                     "positions are metres north/east/down in the local-level frame at the world "
-                    "origin; angles in degrees. Errors answer `{\"detail\": \"what is wrong\"}`. "
+                    "origin; angles in degrees. Numbers are finite and within the documented "
+                    "ranges. Every error answers the `ErrorResponse` schema: "
+                    "`{\"detail\": \"what is wrong\", \"errors\": [{\"field\", "
+                    "\"message\", \"type\"}]}` (`errors` lists the wrong fields of a 422; "
+                    "a body that is not JSON is a 422 too, one that cannot be decoded a 400). "
+                    "Unknown body fields and unknown query parameters are 422. "
                     "The per-frame stream is the WebSocket `/api/sessions/{id}/stream` "
-                    "(schema of its frame header: `GET /api/stream/schema`).",
+                    "(schema of its frame header: `GET /api/stream/schema`). "
+                    "Off loopback every `/api` request needs `Authorization: Bearer <token>` "
+                    "(the stream: `?token=`); a read-only token may only read and watch.",
         lifespan=lifespan,
+        responses=responses,
+        dependencies=[Depends(reject_unknown_query)],
     )
     app.state.settings = settings
     app.state.catalog = catalog
     app.state.manager = manager
     app.state.viewer = None
-
-    @app.exception_handler(ApiError)
-    async def api_error(_request: Request, exc: ApiError) -> JSONResponse:
-        return JSONResponse({"detail": exc.message}, status_code=exc.status)
+    install_handlers(app)
+    app.add_middleware(MethodGate)
+    app.add_middleware(TokenGate, access=settings.access)
+    if settings.access.required:
+        _document_bearer(app)
 
     app.include_router(routes_recordings.router)
     app.include_router(routes_sessions.router)
@@ -125,3 +147,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # after the API routes: the page's own files (scripts, styles) at the root
         app.mount("/", StaticFiles(directory=settings.frontend_dir), name="frontend")
     return app
+
+
+def _document_bearer(app: FastAPI) -> None:
+    """Declare the bearer token in OpenAPI (only when it is required: a schema that declares
+    it on an open server would be wrong)."""
+    plain = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = plain()
+            schema.setdefault("components", {})["securitySchemes"] = {
+                "token": {"type": "http", "scheme": "bearer",
+                          "description": "control or read-only token printed by serve"}}
+            schema["security"] = [{"token": []}]
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]

@@ -15,6 +15,7 @@ from recordings.format import Recording
 
 from .errors import Unprocessable
 from .geometry import berth_metrics
+from .models import MAX_PLAN_M
 
 MIN_LENGTH_M = 0.1  # the two points of a berth line at least this far apart
 
@@ -46,6 +47,9 @@ class Berth:
 
     def set_ned(self, line_ne: np.ndarray, source: str = "ned") -> BerthLine:
         line = np.asarray(line_ne, dtype=float).reshape(2, 2)
+        if not np.isfinite(line).all() or np.abs(line).max() > MAX_PLAN_M:
+            raise Unprocessable(f"the berth line's points must lie within {MAX_PLAN_M:g} m of "
+                                "the origin (north and east)")
         if np.linalg.norm(line[1] - line[0]) < MIN_LENGTH_M:
             raise Unprocessable(f"the berth line's two points are less than {MIN_LENGTH_M:g} m "
                                 "apart")

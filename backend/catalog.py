@@ -13,9 +13,10 @@ from typing import Any
 
 from recordings.format import Recording, RecordingError, load, summary
 
+from . import models
 from .errors import BadRequest, NotFound, Unprocessable
 
-RECORDING_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+RECORDING_NAME = re.compile(models.RECORDING_NAME)
 
 
 
@@ -75,16 +76,14 @@ class RecordingCatalog:
         return next((e.name for e in self.entries().values() if e.default), None)
 
     def resolve(self, name: str) -> RecordingEntry:
-        """The entry named ``name``; 400 for a name that is not a plain directory name, 404
-        for an unknown one. Nothing from ``name`` reaches the file system."""
+        """The entry named ``name``; 400 for a name that is not a plain directory name (the
+        API's validation rejects those first), 404 for an unknown one. Nothing from ``name``
+        reaches the file system: it is only looked up in the listing."""
         if not isinstance(name, str) or not name:
             raise BadRequest("recording name is empty")
         if "/" in name or "\\" in name:
             raise BadRequest(f"recording name {name!r} contains a path separator; use a name "
                              "from GET /api/recordings")
-        if name in (".", "..") or ".." in name:
-            raise BadRequest(f"recording name {name!r} contains '..'; use a name from "
-                             "GET /api/recordings")
         if not RECORDING_NAME.match(name):
             raise BadRequest(f"recording name {name!r} is not a plain name (letters, digits, "
                              "'.', '_', '-'; at most 128 characters)")

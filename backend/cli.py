@@ -52,6 +52,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from backend.access import CONTROL_ENV, access_for, is_loopback
     from backend.app import Settings, create_app
 
     recording = _recording_arg(args.recording).resolve()
@@ -70,15 +71,28 @@ def cmd_serve(args: argparse.Namespace) -> int:
             raise ValueError(f"{name} must be a positive number, got {value!r}")
     integrity = IntegrityConfig(alert_limit_m=args.alert_limit,
                                 heading_alert_limit_deg=args.heading_alert_limit)
+    access, generated = access_for(args.host)
+    # The 3-D viewer (viser) has no access control of its own: off loopback it listens on
+    # loopback only unless asked.
+    viser_host = args.viser_host or (args.host if is_loopback(args.host) else "127.0.0.1")
     settings = Settings(recordings_dir=recordings_dir, default_recording=recording,
-                        viser_host=args.host, viser_port=None if args.no_viewer
-                        else args.viser_port, announce=True, integrity=integrity)
-    if args.host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"warning: listening on {args.host}: anyone who reaches this machine can open "
-              "and control sessions", file=sys.stderr)
+                        viser_host=viser_host, viser_port=None if args.no_viewer
+                        else args.viser_port, announce=True, access=access,
+                        integrity=integrity)
     shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
-    print(f"berthing aid: http://{shown}:{args.port}/  (API docs http://{shown}:{args.port}"
-          f"/docs), recording {recording}", flush=True)
+    if ":" in shown:
+        shown = f"[{shown}]"
+    url = f"http://{shown}:{args.port}/"
+    print(f"berthing aid: {url}  (API docs {url}docs), recording {recording}", flush=True)
+    if access.required:
+        source = "generated for this run" if generated else f"from ${CONTROL_ENV}"
+        print(f"access tokens ({source}); open the page with one:", flush=True)
+        print(f"  control:   {url}#token={access.control}", flush=True)
+        if access.view:
+            print(f"  read-only: {url}#token={access.view}", flush=True)
+    if not is_loopback(viser_host) and not args.no_viewer:
+        print(f"warning: the 3-D viewer listens on {viser_host} without access control",
+              file=sys.stderr)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="warning")
     return 0
 
@@ -112,10 +126,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("serve", help="web server: replay sessions, stream, API, 3-D viewer")
     p.add_argument("recording", nargs="?", help="default recording (default: bundled)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default: loopback). Anything else requires access "
+                        "tokens: from $BERTHING_AID_TOKEN (control) and $BERTHING_AID_VIEW_TOKEN "
+                        "(read-only), else generated and printed")
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
     p.add_argument("--viser-port", type=int, default=8080,
                    help="3-D viewer port (default 8080; 0: any free port)")
+    p.add_argument("--viser-host", default=None,
+                   help="address of the 3-D viewer (default: --host on loopback, else "
+                        "127.0.0.1: the viewer has no access control)")
     p.add_argument("--no-viewer", action="store_true", help="do not start the 3-D viewer")
     p.add_argument("--recordings-dir", default=None,
                    help="directory whose recordings (sub-directories) can be replayed too")

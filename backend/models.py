@@ -9,21 +9,87 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    WrapValidator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
 
-Speed = Annotated[float, Field(gt=0.0, le=64.0)] | Literal["max"]
+# Documented ranges. Every number a client sends is finite and inside one of these (NaN,
+# ±inf and absurd magnitudes are 422 naming the field); times are checked against the
+# recording itself once it is known (422 "outside the recording").
+SPEED_MIN, SPEED_MAX = 0.01, 100.0  # replay speed factor
+MAX_TIME_S = 1.0e6  # any time in the API, s since the recording start (recordings are shorter)
+MAX_PLAN_M = 10_000.0  # |north|, |east| of a berth line point, m
+MAX_PIXEL = 100_000.0  # |u|, |v| of a pixel (the image size is checked after)
+
+
+def _one_error(kind: str, message: str) -> WrapValidator:
+    """One clear message for a union (pydantic would give one per member)."""
+
+    def validate(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+        try:
+            return handler(value)
+        except ValidationError:
+            raise PydanticCustomError(kind, message) from None
+
+    return WrapValidator(validate)
+
+
+Speed = Annotated[Annotated[float, Field(ge=SPEED_MIN, le=SPEED_MAX, allow_inf_nan=False)]
+                  | Literal["max"],
+                  _one_error("speed", f"speed must be a number in [{SPEED_MIN:g}, "
+                                      f"{SPEED_MAX:g}] or 'max'")]
+Seconds = Annotated[float, Field(ge=0.0, le=MAX_TIME_S, allow_inf_nan=False)]
+Pixel = Annotated[float, Field(ge=-MAX_PIXEL, le=MAX_PIXEL, allow_inf_nan=False)]
+PlanMetres = Annotated[float, Field(ge=-MAX_PLAN_M, le=MAX_PLAN_M, allow_inf_nan=False)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
+PixelPoint = Annotated[list[Pixel], Field(min_length=2, max_length=2)]
+PlanPoint = Annotated[list[PlanMetres], Field(min_length=2, max_length=2)]
+# a recording's directory name: no path separator, no leading dot (catalog.RecordingCatalog)
+RECORDING_NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
+RecordingName = Annotated[str, Field(pattern=RECORDING_NAME, examples=["default"]),
+                          _one_error("recording_name", "a recording name from GET "
+                                     "/api/recordings: letters, digits, '.', '_', '-' (not "
+                                     "first), at most 128 characters")]
 SatelliteId = Annotated[str, Field(pattern=r"^[GRECJSI]\d{2}$", examples=["G05"])]
-FrameTime = Annotated[float, Field(ge=0.0)] | Literal["current"]
+FrameTime = Annotated[Seconds | Literal["current"],
+                      _one_error("frame_time", f"a time in [0, {MAX_TIME_S:g}] s since the "
+                                               "recording start, or 'current'")]
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")  # a misspelt field is an error, not ignored
+    """A request body: a misspelt field is an error, not ignored; types are exact (``false``
+    is not a number, ``"1"`` is not a number); numbers are finite."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+
+
+class FieldError(BaseModel):
+    field: str = Field(description="where: body.<field>, query.<name>, path.<name>",
+                       examples=["body.speed"])
+    message: str
+    type: str = Field(description="machine-readable kind (pydantic's error type, "
+                                  "unknown_parameter, json_invalid…)")
 
 
 class ErrorResponse(BaseModel):
-    detail: str = Field(description="what is wrong with the request")
+    """The one error body of every route and status (400, 401, 403, 404, 405, 409, 422,
+    429, 500)."""
+
+    detail: str = Field(description="what is wrong with the request, for a person")
+    errors: list[FieldError] = Field(
+        default_factory=list,
+        description="one entry per field that breaks the schema (422); empty otherwise — a "
+                    "422 without entries is a request the schema allows that this session "
+                    "cannot serve (a time beyond the recording, a pixel above the horizon), "
+                    "said in `detail`")
 
 
 # ---------------------------------------------------------------------------- recordings
@@ -76,40 +142,65 @@ class FusionOptionsModel(Strict):
     common_clock: bool = True
     satellites_keep: list[SatelliteId] | None = Field(
         None, description="keep only these satellites after keep_after_s (thesis tables 18-20)")
-    keep_after_s: float = Field(30.0, ge=0.0)
-    sky_mask_deg: float | None = Field(None, ge=0.0, le=90.0,
-                                       description="elevation mask (deg)")
-    per_receiver_sats: dict[Annotated[int, Field(ge=0, le=3)], list[SatelliteId]] | None = Field(
+    keep_after_s: Seconds = 30.0
+    sky_mask_deg: Annotated[float, Field(ge=0.0, le=90.0)] | None = Field(
+        None, description="elevation mask (deg)")
+    # JSON object keys are strings: the receiver index is parsed from one ("0".."3")
+    per_receiver_sats: dict[Annotated[int, Field(ge=0, le=3, strict=False)],
+                            list[SatelliteId]] | None = Field(
         None, description="receiver index (0..3) → the only satellites it keeps after "
                           "keep_after_s (thesis table 21); receivers not listed keep theirs",
-        examples=[{"0": ["G05"], "1": ["G13"], "2": ["E11"], "3": ["J02"]}])
+        examples=[{"0": ["G05"], "1": ["G13"], "2": ["E11"], "3": ["J02"]}],
+        json_schema_extra={"propertyNames": {"pattern": "^[0-3]$"}})
 
 
 class SessionCreate(Strict):
-    recording: str = Field(description="a name from GET /api/recordings", examples=["default"])
-    speed: Speed = Field(1.0, description="replay speed factor, or 'max' (as fast as possible)")
+    recording: RecordingName = Field(description="a name from GET /api/recordings")
+    speed: Speed = Field(1.0, description=f"replay speed factor in [{SPEED_MIN:g}, "
+                                          f"{SPEED_MAX:g}], or 'max' (as fast as possible)")
     options: FusionOptionsModel = Field(default_factory=FusionOptionsModel)
     paused: bool = False
     prediction_seconds: int = Field(5, ge=0, le=30,
                                     description="predicted hull outlines in the stream")
-    body_height_m: float | None = Field(
-        None, ge=-50.0, le=100.0,
+    body_height_m: Annotated[float, Field(ge=-50.0, le=100.0)] | None = Field(
+        None,
         description="height of the body origin (IMU) above the water: places the water plane "
                     "(grid, predicted outlines, water-plane targets). Default: from the "
                     "recording (see water_level.source in the status)")
 
 
 class ControlRequest(Strict):
-    action: Literal["play", "pause", "seek", "speed"]
-    time: float | None = Field(None, ge=0.0, description="seek target, s since the start")
-    speed: Speed | None = None
+    """``time`` goes with ``seek`` only and ``speed`` with ``speed`` only (the schema's
+    ``oneOf``)."""
+
+    model_config = ConfigDict(json_schema_extra={"oneOf": [
+        {"properties": {"action": {"enum": ["play", "pause"]}},
+         "not": {"anyOf": [{"required": ["time"]}, {"required": ["speed"]}]}},
+        {"properties": {"action": {"const": "seek"}}, "required": ["time"],
+         "not": {"required": ["speed"]}},
+        {"properties": {"action": {"const": "speed"}}, "required": ["speed"],
+         "not": {"required": ["time"]}}]})
+
+    action: Literal["play", "pause", "seek", "speed"] = Field(
+        description="play: at the end of the recording answers 409 (seek first, e.g. to 0: "
+                    "the history after the seek target is then recomputed); after an error "
+                    "restarts the engine and recomputes up to where it stopped. seek: to "
+                    "`time`. speed: to `speed`.")
+    # not nullable: absent means absent (defaults are not validated)
+    time: Seconds = Field(None, description="seek target, s since the recording start "
+                                            "(within the recording; 422 beyond it)")
+    speed: Speed = Field(None, description=f"[{SPEED_MIN:g}, {SPEED_MAX:g}] or 'max'")
 
     @model_validator(mode="after")
     def _needs(self) -> ControlRequest:
-        if self.action == "seek" and self.time is None:
-            raise ValueError("action 'seek' needs 'time' (seconds since the recording start)")
-        if self.action == "speed" and self.speed is None:
-            raise ValueError("action 'speed' needs 'speed' (a factor in (0, 64] or 'max')")
+        wanted = {"seek": "time", "speed": "speed"}.get(self.action)
+        for name in ("time", "speed"):
+            given = getattr(self, name) is not None
+            if name == wanted and not given:
+                raise ValueError(f"action {self.action!r} needs {name!r}")
+            if name != wanted and given:
+                raise ValueError(f"{name!r} goes with action "
+                                 f"{'seek' if name == 'time' else 'speed'!r} only")
         return self
 
 
@@ -244,8 +335,8 @@ class Prediction(BaseModel):
 
 class TargetCreate(Strict):
     frame_time: FrameTime = Field("current", description="the frame the pixel belongs to")
-    u: float = Field(description="image column (distorted pixels)")
-    v: float = Field(description="image row (distorted pixels)")
+    u: Pixel = Field(description="image column (distorted pixels)")
+    v: Pixel = Field(description="image row (distorted pixels)")
     label: str | None = Field(None, max_length=64)
 
 
@@ -284,11 +375,17 @@ class TargetList(BaseModel):
 
 
 class BerthLineRequest(Strict):
-    image_points: Annotated[list[Vec2], Field(min_length=2, max_length=2)] | None = Field(
-        None, description="two pixels on the quay's water line")
+    """Exactly one of ``image_points`` and ``ned`` (the schema's ``oneOf``)."""
+
+    model_config = ConfigDict(json_schema_extra={"oneOf": [{"required": ["image_points"]},
+                                                           {"required": ["ned"]}]})
+
+    # not nullable: absent means absent (defaults are not validated)
+    image_points: Annotated[list[PixelPoint], Field(min_length=2, max_length=2)] = Field(
+        None, description="two pixels on the quay's water line of the frame at `frame_time`")
     frame_time: FrameTime = "current"
-    ned: Annotated[list[Vec2], Field(min_length=2, max_length=2)] | None = Field(
-        None, description="two (north, east) points")
+    ned: Annotated[list[PlanPoint], Field(min_length=2, max_length=2)] = Field(
+        None, description=f"two (north, east) points, |north|, |east| <= {MAX_PLAN_M:g} m")
 
     @model_validator(mode="after")
     def _one(self) -> BerthLineRequest:
@@ -343,7 +440,7 @@ class Viewer(BaseModel):
 
 
 class ViewerFollow(Strict):
-    session: str
+    session: str = Field(max_length=64)
 
 
 class ServerInfo(BaseModel):

@@ -155,12 +155,20 @@ class Replayer:
             self._seek_to = float(self.rec.manifest.start_gpst)
         self._thread.start()
 
-    def play(self) -> None:
+    def play(self) -> bool:
+        """Play on. At the end of the recording nothing changes and False is returned: playing
+        again means seeking back (which recomputes the history after the seek target), and
+        that is the client's explicit choice. After an error the engine restarts from the
+        newest checkpoint before the replay position (or from the start) and recomputes up to
+        it before playing on."""
         with self._cond:
-            if self._state in (ReplayState.ENDED, ReplayState.ERROR):
-                self._seek_to = float(self.rec.manifest.start_gpst)  # play again from the start
+            if self._state == ReplayState.ENDED and self._seek_to is None:
+                return False
+            if self._state == ReplayState.ERROR and self._seek_to is None:
+                self._seek_to = self._t
             self._playing = True
             self._cond.notify_all()
+            return True
 
     def pause(self) -> None:
         with self._cond:
@@ -261,8 +269,10 @@ class Replayer:
             self._state = ReplayState.ERROR
 
     def _run(self) -> None:
-        # The sink is only ever called with the condition released: its callbacks take the
-        # session's lock, and API threads holding that lock read this replayer's status.
+        """The thread body. Whatever fails in it — the engine, the recording, the pacing, the
+        sink, or code that looks safe — ends in ERROR with the message, told to the sink (the
+        API status and the stream show it); the thread then waits for a restart (seek, play)
+        or for stop. No failure ends the thread unseen."""
         loop = _Loop()
         try:
             loop.engine = self._make_engine()
@@ -270,11 +280,60 @@ class Replayer:
         except Exception as exc:
             log.exception("cannot start the replay")
             self._fail(f"cannot start the fusion engine: {exc}")
+        try:
+            while True:
+                try:
+                    self._loop(loop)
+                    return  # stopped
+                except BaseException as exc:  # noqa: B036 - a thread has nobody to raise to
+                    log.exception("replay thread failed")
+                    self._fail(f"replay failed: {exc!r}")
+                    self._release(loop)
+                    loop = _Loop(notified=loop.notified)
+                    self._notify(loop, ReplayState.ERROR)
+                    if not self._wait_for_restart():
+                        return
+        finally:
+            self._release(loop)
+            with self._cond:
+                self._state = ReplayState.STOPPED
+                self._checkpoints = []  # engine copies: the largest thing a replay holds
+
+    def _notify(self, loop: _Loop, state: ReplayState) -> None:
+        """Tell the sink the state once; a sink that fails is logged (the state stands)."""
+        if state == loop.notified:
+            return
+        loop.notified = state
+        try:
+            self._sink.on_state(state)
+        except Exception:
+            log.exception("the sink failed on state %s", state.value)
+
+    def _wait_for_restart(self) -> bool:
+        """After a failure: wait for a seek (play after an error is one) or stop; False on
+        stop."""
+        with self._cond:
+            while not self._stop and self._seek_to is None:
+                self._cond.wait()
+            return not self._stop
+
+    @staticmethod
+    def _release(loop: _Loop) -> None:
+        """Close the message iterator now (it holds the video decoder) and drop the engine."""
+        close = getattr(loop.messages, "close", None)
+        loop.messages, loop.pending, loop.engine = iter(()), None, None
+        if close is not None:
+            try:
+                close()
+            except Exception:
+                log.exception("closing the recording's messages failed")
+
+    def _loop(self, loop: _Loop) -> None:
+        # The sink is only ever called with the condition released: its callbacks take the
+        # session's lock, and API threads holding that lock read this replayer's status.
         while True:
             state, speed, goal, restart = self._command(loop)
-            if state != loop.notified:
-                self._sink.on_state(state)
-                loop.notified = state
+            self._notify(loop, state)
             if state == ReplayState.STOPPED:
                 return
             if goal is not None:
@@ -317,7 +376,7 @@ class Replayer:
             return self._state, self._speed, goal, restart
 
     def _restart_loop(self, loop: _Loop, goal: float) -> bool:
-        loop.pending = None
+        self._release(loop)
         try:
             loop.engine, loop.messages = self._restart(goal)
         except Exception as exc:
@@ -367,8 +426,11 @@ class Replayer:
         try:
             self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, live,
                                             time.time()), engine)
-        except Exception:  # what is done with a result must not stop the replay
+        except Exception as exc:  # the session's bookkeeping failed: serving on would lie
             log.exception("frame sink failed at frame %d", msg.index)
+            self._fail(f"serving frame {msg.index} failed: {exc!r}")
+            loop.target = None
+            return
         self._maybe_checkpoint(engine, msg.t)
         if target is not None and msg.t >= target:
             loop.target = None  # seek done: playing or paused resumes from here
@@ -396,6 +458,6 @@ class Replayer:
                 remaining = due - time.monotonic()
                 if remaining <= 0:
                     return anchor
-                self._cond.wait(remaining)
+                self._cond.wait(min(remaining, 1.0))  # bounded: any speed, any clock
 
 

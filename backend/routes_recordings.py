@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Annotated
+
+from fastapi import APIRouter, Path
 from fastapi.concurrency import run_in_threadpool
 
 from .deps import CatalogDep, errors
-from .models import RecordingInfo, RecordingList, RecordingSummary
+from .models import RecordingInfo, RecordingList, RecordingName, RecordingSummary
 
 router = APIRouter(prefix="/api/recordings", tags=["recordings"])
 
@@ -33,11 +35,12 @@ def list_recordings(catalog: CatalogDep) -> RecordingList:
     return RecordingList(recordings=infos, default=catalog.default_name())
 
 
-# ``:path`` so that a name with a slash reaches the handler and gets a precise 400 rather
+# ``:path`` so that a name with a slash reaches the validation and gets a precise 422 rather
 # than the router's bare 404.
-@router.get("/{name:path}", response_model=RecordingSummary, responses=errors(400, 404, 422),
+@router.get("/{name:path}", response_model=RecordingSummary, responses=errors(404),
             summary="Summary of one recording")
-async def recording_summary(name: str, catalog: CatalogDep) -> RecordingSummary:
+async def recording_summary(name: Annotated[RecordingName, Path()],
+                            catalog: CatalogDep) -> RecordingSummary:
     """What the recording holds (``berthing-aid info``): duration, sensors, satellites per
     epoch, frames, reference. The first call loads the recording (a few seconds)."""
     catalog.resolve(name)  # reject bad names before touching anything

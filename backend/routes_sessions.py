@@ -12,6 +12,7 @@ from .deps import ManagerDep, SessionDep, errors
 from .errors import NotFound
 from .geometry import hull_outline_ne
 from .models import (
+    MAX_TIME_S,
     Alarm,
     AlarmList,
     ControlRequest,
@@ -43,7 +44,7 @@ def list_sessions(manager: ManagerDep) -> SessionList:
 
 
 @router.post("", response_model=SessionStatus, status_code=status.HTTP_201_CREATED,
-             responses=errors(400, 404, 422, 429), summary="Start replaying a recording")
+             responses=errors(400, 404, 429), summary="Start replaying a recording")
 async def create_session(body: SessionCreate, manager: ManagerDep) -> SessionStatus:
     """Replays ``recording`` through the fusion engine at ``speed`` (or paused), with the
     scenario ``options`` (satellite subsets, sky mask…). Loading a recording the first time
@@ -69,21 +70,26 @@ def delete_session(session: SessionDep, manager: ManagerDep) -> Response:
 
 
 @router.post("/{session_id}/control", response_model=SessionStatus,
-             responses=errors(404, 422), summary="Play, pause, seek or change speed")
+             responses=errors(400, 404, 409), summary="Play, pause, seek or change speed")
 def control_session(body: ControlRequest, session: SessionDep) -> SessionStatus:
     """``seek`` restarts the engine from the nearest cached checkpoint before ``time`` (or from
     the start) and runs it as fast as possible up to ``time`` without sending frames; a seek
-    forward fast-forwards from the current position. The state is ``seeking`` meanwhile."""
+    forward fast-forwards from the current position. The state is ``seeking`` meanwhile.
+    ``play`` at the end of the recording is 409: nothing is thrown away unless the client
+    seeks back (the history after the seek target is then recomputed). ``play`` after an
+    error (state ``error``, the message in ``error``) restarts the engine from the newest
+    checkpoint before the replay position, or from the start, and recomputes up to it."""
     session.control(body.action, body.time, body.speed)
     return _status(session)
 
 
-@router.get("/{session_id}/pose", response_model=PoseResponse, responses=errors(404, 409, 422),
+@router.get("/{session_id}/pose", response_model=PoseResponse, responses=errors(404, 409),
             summary="Current pose, or the pose at a past time")
 def get_pose(session: SessionDep,
              t: Annotated[float | None, Query(
-                 ge=0.0, description="s since the recording start; omitted: the current pose. "
-                                     "The stored pose of the last frame at or before t.")] = None
+                 ge=0.0, le=MAX_TIME_S, allow_inf_nan=False,
+                 description="s since the recording start; omitted: the current pose. The "
+                             "stored pose of the last frame at or before t.")] = None
              ) -> PoseResponse:
     state = session.current_state() if t is None else session.history.state_at(t)
     return PoseResponse(**pose_dict(state, session.start_gpst),
@@ -107,7 +113,8 @@ def get_trajectory(session: SessionDep,
             summary="Port-structure points (3-D feature points)")
 def get_structure(session: SessionDep,
                   max_sigma: Annotated[float | None, Query(
-                      gt=0.0, description="only points with sigma <= this (m)")] = None
+                      gt=0.0, le=1e6, allow_inf_nan=False,
+                      description="only points with sigma <= this (m)")] = None
                   ) -> Structure:
     s = session.structure()
     pts, sigma, ids, t = s.points, s.sigma, s.ids, s.t
@@ -120,7 +127,7 @@ def get_structure(session: SessionDep,
 
 
 @router.get("/{session_id}/prediction", response_model=Prediction,
-            responses=errors(404, 409, 422), summary="Predicted hull outlines")
+            responses=errors(404, 409), summary="Predicted hull outlines")
 def get_prediction(session: SessionDep,
                    seconds: Annotated[int, Query(ge=0, le=60, description="N: outlines at "
                                                  "1, 2, … N s ahead")] = 5) -> Prediction:
@@ -132,10 +139,11 @@ def get_prediction(session: SessionDep,
                                 for k, o in enumerate(outlines, start=1)])
 
 
-@router.get("/{session_id}/report", response_model=Report, responses=errors(404, 409, 422),
+@router.get("/{session_id}/report", response_model=Report, responses=errors(404, 409),
             summary="Accuracy against the reference trajectory so far")
 def get_report(session: SessionDep,
-               after: Annotated[float, Query(ge=0.0, description="ignore the first `after` s "
+               after: Annotated[float, Query(ge=0.0, le=MAX_TIME_S, allow_inf_nan=False,
+                                             description="ignore the first `after` s "
                                              "(initialisation; the thesis uses 30 s)")] = 0.0
                ) -> Report:
     """Horizontal error (RMS, std, mean, max), vertical and heading error of the fused poses
@@ -168,7 +176,10 @@ def acknowledge_alarm(session: SessionDep,
 @router.websocket("/{session_id}/stream")
 async def stream(websocket: WebSocket, session_id: str,
                  ack: Annotated[bool, Query(description="the client acknowledges frames")] = False,
-                 window: Annotated[int, Query(ge=1, le=16)] = 2) -> None:
+                 window: Annotated[int, Query(ge=1, le=16)] = 2,
+                 token: Annotated[str | None, Query(description="access token, when the "
+                                                    "server requires one (backend.access)")]
+                 = None) -> None:
     """One JSON header (text) + one JPEG (binary) per video frame; see ``backend.stream``."""
     await serve_stream(websocket, websocket.app.state.manager, session_id,
                        window if ack else None)

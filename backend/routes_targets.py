@@ -82,7 +82,7 @@ def _target_out(session: Session, target: Target) -> dict:
 
 
 @router.post("/targets", response_model=TargetOut,
-             status_code=status.HTTP_201_CREATED, responses=errors(404, 409, 422),
+             status_code=status.HTTP_201_CREATED, responses=errors(400, 404, 409),
              summary="Designate a point in the video")
 def create_target(body: TargetCreate, session: SessionDep) -> TargetOut:
     """The 3-D point under pixel (u, v) of a frame (``frame_time``, or the current one): from
@@ -132,7 +132,7 @@ def _berth_status(session: Session) -> BerthLineStatus:
     return BerthLineStatus(**session.berth_status())
 
 
-@router.put("/berth-line", response_model=BerthLineStatus, responses=errors(404, 409, 422),
+@router.put("/berth-line", response_model=BerthLineStatus, responses=errors(400, 404, 409),
             summary="Set the berth line")
 def put_berth_line(body: BerthLineRequest, session: SessionDep) -> BerthLineStatus:
     """From two (north, east) points, or from two pixels on the quay's water line of a frame
@@ -149,11 +149,12 @@ def put_berth_line(body: BerthLineRequest, session: SessionDep) -> BerthLineStat
 @router.get("/berth-line", response_model=BerthLineStatus, responses=errors(404),
             summary="Berth line with bow/stern distance and approach speed")
 def get_berth_line(session: SessionDep) -> BerthLineStatus:
+    """404 when the session has no berth line (none in the recording, none set, or deleted)."""
     return _berth_status(session)
 
 
 @router.delete("/berth-line", status_code=status.HTTP_204_NO_CONTENT, responses=errors(404),
-               summary="Remove the berth line")
+               summary="Remove the berth line (204 also when there is none)")
 def delete_berth_line(session: SessionDep) -> Response:
     session.clear_berth_line()
     return Response(status_code=status.HTTP_204_NO_CONTENT)

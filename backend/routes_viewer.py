@@ -27,7 +27,7 @@ def get_viewer_info(request: Request) -> Viewer:
     return _viewer(request)
 
 
-@router.put("", response_model=Viewer, responses=errors(404, 409),
+@router.put("", response_model=Viewer, responses=errors(400, 404, 409),
             summary="Choose the session the 3-D viewer shows")
 def follow_session(body: ViewerFollow, request: Request, manager: ManagerDep) -> Viewer:
     view = get_viewer(request)

@@ -214,6 +214,10 @@ class TargetBook:
                                f"{', '.join(self._targets) or 'none'})")
             return self._targets[target_id]
 
+    def clear(self) -> None:
+        with self.lock:
+            self._targets.clear()
+
     def delete(self, target_id: str) -> None:
         with self.lock:
             self.get(target_id)

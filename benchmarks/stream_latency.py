@@ -20,8 +20,6 @@ import argparse
 import asyncio
 import json
 import os
-import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -29,28 +27,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import websockets
-
-ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_RECORDING = ROOT / "recordings" / "default"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def proc_cpu_seconds(pid: int) -> float:
-    """user + system CPU seconds of a process and its threads (Linux /proc)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def proc_rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024.0
-    return float("nan")
+from serverproc import DEFAULT_RECORDING, proc_cpu_seconds, proc_rss_mb, serve
 
 
 async def client(url: str, until: float, out: list[tuple[float, float, float]]) -> None:
@@ -93,50 +70,32 @@ def main() -> int:
         print(f"no recording at {recording}; make one with berthing-aid simulate", file=sys.stderr)
         return 2
 
-    port = free_port()
-    command = [sys.executable, "-m", "backend.cli", "serve", str(recording), "--port", str(port)]
-    command += ["--no-viewer"] if args.no_viewer else ["--viser-port", "0"]
-    server = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.PIPE, text=True)
-    base = f"http://127.0.0.1:{port}"
-    try:
-        with httpx.Client(base_url=base, timeout=60) as http:
-            for _ in range(300):
-                try:
-                    http.get("/api/recordings")
-                    break
-                except httpx.TransportError:
-                    if server.poll() is not None:
-                        print(server.stderr.read(), file=sys.stderr)
-                        return 1
-                    time.sleep(0.1)
-            name = http.get("/api/recordings").json()["default"]
-            session = http.post("/api/sessions", json={"recording": name, "speed": args.speed,
-                                                       "paused": True}).json()
-            sid = session["id"]
-            duration = min(args.seconds, session["duration_s"] / args.speed)
-            url = f"ws://127.0.0.1:{port}/api/sessions/{sid}/stream"
-            received: list[list[tuple[float, float, float]]] = [[] for _ in range(args.clients)]
-            rss: list[float] = []
+    with serve(recording, viewer=not args.no_viewer) as server, \
+            httpx.Client(base_url=server.base, timeout=60) as http:
+        name = http.get("/api/recordings").json()["default"]
+        session = http.post("/api/sessions", json={"recording": name, "speed": args.speed,
+                                                   "paused": True}).json()
+        sid = session["id"]
+        duration = min(args.seconds, session["duration_s"] / args.speed)
+        url = f"{server.ws}/api/sessions/{sid}/stream"
+        received: list[list[tuple[float, float, float]]] = [[] for _ in range(args.clients)]
+        rss: list[float] = []
 
-            async def run() -> tuple[float, float]:
-                until = time.time() + duration + 0.5
-                tasks = [asyncio.create_task(client(url, until, out)) for out in received]
-                await asyncio.sleep(0.5)  # all connected
-                cpu0, wall0 = proc_cpu_seconds(server.pid), time.monotonic()
-                http.post(f"/api/sessions/{sid}/control", json={"action": "play"})
-                while time.time() < until:
-                    rss.append(proc_rss_mb(server.pid))
-                    await asyncio.sleep(0.5)
-                await asyncio.gather(*tasks)
-                return proc_cpu_seconds(server.pid) - cpu0, time.monotonic() - wall0
+        async def run() -> tuple[float, float]:
+            until = time.time() + duration + 0.5
+            tasks = [asyncio.create_task(client(url, until, out)) for out in received]
+            await asyncio.sleep(0.5)  # all connected
+            cpu0, wall0 = proc_cpu_seconds(server.pid), time.monotonic()
+            http.post(f"/api/sessions/{sid}/control", json={"action": "play"})
+            while time.time() < until:
+                rss.append(proc_rss_mb(server.pid))
+                await asyncio.sleep(0.5)
+            await asyncio.gather(*tasks)
+            return proc_cpu_seconds(server.pid) - cpu0, time.monotonic() - wall0
 
-            cpu, wall = asyncio.run(run())
-            status = http.get(f"/api/sessions/{sid}").json()
-            http.delete(f"/api/sessions/{sid}")
-    finally:
-        server.terminate()
-        server.wait(10)
+        cpu, wall = asyncio.run(run())
+        status = http.get(f"/api/sessions/{sid}").json()
+        http.delete(f"/api/sessions/{sid}")
 
     everything = [r for out in received for r in out]
     print(f"recording {recording.name}: {args.clients} clients, {duration:.1f} s at speed "

@@ -198,11 +198,50 @@ def test_engine_failure_is_reported_and_play_restarts(rec: Recording):
         wait_for(lambda: replayer.state == ReplayState.ERROR)
         status = replayer.status()
         assert "diverged" in status["error"] and len(sink.results) == 5
-        replayer.play()  # from the start again, with a new engine
+        # play restarts: a new engine (no checkpoint yet: from the start) up to where it failed
+        assert replayer.play()
         wait_for(lambda: sink.rewinds == [None])
     finally:
         replayer.stop()
     assert replayer.state == ReplayState.STOPPED
+
+
+def test_any_failure_in_the_thread_ends_in_error_and_the_thread_waits_for_a_restart(
+        rec: Recording):
+    class Fatal(BaseException):  # not an Exception: only the thread's guard catches it
+        pass
+
+    engines: list[SumEngine] = []
+
+    class Dying(SumEngine):
+        def __init__(self) -> None:
+            super().__init__()
+            engines.append(self)
+
+        def process_frame(self, t, image):
+            if len(engines) == 1 and self.frames == 5:
+                raise Fatal("out of luck")
+            return super().process_frame(t, image)
+
+    sink = Sink()
+    replayer = Replayer(rec, Dying, sink, speed=None)
+    replayer.start()
+    try:
+        wait_for(lambda: sink.states and sink.states[-1] == ReplayState.ERROR)  # told
+        assert replayer.state == ReplayState.ERROR
+        assert "out of luck" in replayer.status()["error"]
+        assert replayer._thread.is_alive()  # waiting for a restart, not dead
+        replayer.seek(float(rec.frame_times[20]))
+        wait_for(lambda: replayer.state == ReplayState.ENDED)
+        assert len(engines) == 2 and replayer.status()["error"] is None
+        assert [r.index for r in sink.results] == list(range(len(rec.frame_times)))
+        n = len(sink.results)
+        assert not replayer.play()  # at the end: nothing thrown away, the caller must seek
+        time.sleep(0.2)
+        assert replayer.state == ReplayState.ENDED and len(sink.results) == n
+    finally:
+        replayer.stop()
+    assert not replayer._thread.is_alive()
 
 
 def test_snapshot_of_the_real_engine_continues_identically(rec: Recording):

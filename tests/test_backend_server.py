@@ -11,11 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
-import threading
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,124 +21,29 @@ import httpx
 import msgspec
 import numpy as np
 import pytest
-import uvicorn
 import viser
 import websockets
 import zstandard
+from backend_helpers import (
+    RECORDING,
+    Frame,
+    Live,
+    ReferenceEngine,
+)
+from backend_helpers import collect as _collect
+from backend_helpers import ended as _ended
+from backend_helpers import serve as _serve
+from backend_helpers import wait_status as _wait_status
 
-from backend.app import Settings, create_app
+from backend.app import Settings
 from backend.models import StreamFrameHeader
 from estimator.frames import euler_to_dcm
 from recordings.format import Recording, load
-
-RECORDING = "small-boat-12s"
 
 
 @pytest.fixture(scope="module")
 def rec(sim_recording: Path) -> Recording:
     return load(sim_recording)
-
-
-# --------------------------------------------------------------------------- test double
-
-
-@dataclass
-class _Status:
-    phase: str = "fused"
-    compass_fixed: bool = True
-    satellites: int = 17
-    vo_status: str = "tracking"
-    scale: float | None = 1.0
-    scale_converged: bool = True
-    message: str = "reference double"
-
-
-@dataclass
-class _Fused:
-    time: float
-    position_ned: np.ndarray
-    llh_deg: np.ndarray
-    velocity_ned: np.ndarray
-    euler: np.ndarray
-    C_body_to_level: np.ndarray
-    rate_of_turn: float
-    omega_body: np.ndarray
-    position_cov: np.ndarray
-    attitude_cov: np.ndarray
-    status: _Status
-
-
-class ReferenceEngine:
-    """Test double, for the server mechanics only: the pose of each frame is the recording's
-    reference, in the real engine's convention (world origin = body origin at the first
-    frame); the structure is the reference scene points."""
-
-    def __init__(self, rec: Recording) -> None:
-        self.rec = rec
-        self.origin: np.ndarray | None = None
-        self._state: _Fused | None = None
-
-    def process_imu(self, t, gyro, accel) -> None:
-        pass
-
-    def process_gnss(self, t, epochs) -> None:
-        pass
-
-    def process_frame(self, t, image) -> _Fused:
-        ref = self.rec.reference
-        p, v, e = ref.interpolate(t)
-        if self.origin is None:
-            self.origin = p.copy()
-        i = int(np.searchsorted(ref.time, t))
-        _, _, ahead = ref.interpolate(min(t + 0.05, ref.time[-1]))
-        _, _, behind = ref.interpolate(max(t - 0.05, ref.time[0]))
-        rate = float(np.angle(np.exp(1j * (ahead[2] - behind[2])))) / 0.1
-        self._state = _Fused(float(t), p - self.origin, ref.llh_deg[min(i, len(ref) - 1)], v, e,
-                             euler_to_dcm(*e), rate, np.zeros(3), np.eye(3) * 1e-4,
-                             np.eye(3) * 1e-6, _Status())
-        return self._state
-
-    def state(self) -> _Fused | None:
-        return self._state
-
-    def structure(self):
-        pts = self.rec.scene_points - (self.origin if self.origin is not None else 0.0)
-        return pts, np.full(len(pts), 0.05), np.arange(len(pts))
-
-    def solved_views(self) -> None:
-        return None
-
-    def timing(self) -> dict:
-        return {}
-
-
-# ------------------------------------------------------------------------------- servers
-
-
-@dataclass
-class Live:
-    url: str
-    ws: str
-    app: Any
-    rec: Recording
-
-
-def _serve(settings: Settings, rec: Recording) -> Iterator[Live]:
-    app = create_app(settings)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.bind(("127.0.0.1", 0))  # bound here: no race for a "free" port
-    port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    end = time.monotonic() + 20
-    while not server.started:
-        assert time.monotonic() < end and thread.is_alive(), "server did not start"
-        time.sleep(0.02)
-    yield Live(f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}", app, rec)
-    server.should_exit = True
-    thread.join(10)
-    sock.close()
 
 
 @pytest.fixture(scope="module")
@@ -176,60 +78,6 @@ def ref_live(sim_recording: Path, recordings_dir: Path, rec: Recording) -> Itera
     yield from _serve(Settings(recordings_dir=recordings_dir, default_recording=sim_recording,
                                viser_port=None,
                                engine_factory=lambda cal, nav, opts: ReferenceEngine(rec)), rec)
-
-
-# ------------------------------------------------------------------------------- helpers
-
-
-@dataclass
-class Frame:
-    header: dict[str, Any]
-    jpeg: bytes
-    received: float
-
-
-async def _collect(url: str, stop: Callable[[list[Frame], list[dict]], bool],
-                   timeout: float = 60.0, delay: float = 0.0, ack: bool = True
-                   ) -> tuple[list[Frame], list[dict]]:
-    """Read a session stream until ``stop(frames, statuses)``; ``delay`` s of 'work' after
-    each frame makes a slow client; each frame is acknowledged after that work."""
-    frames: list[Frame] = []
-    statuses: list[dict] = []
-    async with websockets.connect(url + ("?ack=1" if ack else ""), max_size=None) as ws:
-        async with asyncio.timeout(timeout):
-            while not stop(frames, statuses):
-                message = await ws.recv()
-                assert isinstance(message, str), "a JPEG without its header"
-                header = json.loads(message)
-                if header["type"] == "frame":
-                    jpeg = await ws.recv()
-                    assert isinstance(jpeg, bytes) and len(jpeg) == header["jpeg_bytes"]
-                    frames.append(Frame(header, jpeg, time.time()))
-                    if delay:
-                        await asyncio.sleep(delay)
-                    if ack:
-                        await ws.send(json.dumps({"type": "ack", "seq": header["seq"]}))
-                elif header["type"] == "status":
-                    statuses.append(header["session"])
-                else:
-                    statuses.append(header)
-                    break
-    return frames, statuses
-
-
-def _ended(frames: list[Frame], statuses: list[dict]) -> bool:
-    return bool(statuses) and statuses[-1].get("state") == "ended"
-
-
-def _wait_status(client: httpx.Client, sid: str, predicate: Callable[[dict], bool],
-                 timeout: float = 60.0) -> dict:
-    end = time.monotonic() + timeout
-    while True:
-        status = client.get(f"/api/sessions/{sid}").json()
-        if predicate(status):
-            return status
-        assert time.monotonic() < end, f"timed out; last status {status}"
-        time.sleep(0.05)
 
 
 def _water_hit(pose: dict, uv: list[float], rec: Recording, plane_down: float) -> np.ndarray:
@@ -515,16 +363,16 @@ def test_pause_seek_and_delete(live: Live, replayed: dict):
 def test_bad_requests_get_precise_errors_and_the_server_keeps_serving(ref_live: Live):
     with httpx.Client(base_url=ref_live.url) as client:
         for path, status, words in (
-                ("/api/recordings/..%2Fetc", 400, "path separator"),
-                ("/api/recordings/a%2Fb", 400, "path separator"),
-                ("/api/recordings/%2E%2E", 400, "'..'"),
+                ("/api/recordings/..%2Fetc", 422, "path.name: a recording name"),
+                ("/api/recordings/a%2Fb", 422, "path.name: a recording name"),
+                ("/api/recordings/%2E%2E", 422, "path.name: a recording name"),
                 ("/api/recordings/nope", 404, "no recording named 'nope'"),
                 ("/api/recordings/broken", 422, "cannot be read"),
                 ("/api/sessions/nope", 404, "no session 'nope'")):
             r = client.get(path)
             assert r.status_code == status, (path, r.text)
             assert words in r.json()["detail"], (path, r.text)
-        for body, status in (({"recording": "../etc"}, 400), ({"recording": "a/b"}, 400),
+        for body, status in (({"recording": "../etc"}, 422), ({"recording": "a/b"}, 422),
                              ({"recording": "nope"}, 404), ({"recording": RECORDING,
                                                              "speed": -1}, 422),
                              ({"recording": RECORDING, "speed": "fast"}, 422),

@@ -76,22 +76,24 @@ def faulty_recordings(recording: Path, tmp_path_factory: pytest.TempPathFactory)
     return root
 
 
-@pytest.fixture(scope="session")
-def server(recording: Path, faulty_recordings: Path) -> Iterator[str]:
+@contextlib.contextmanager
+def _serving(recording: Path, log_name: str, env: dict[str, str] | None = None,
+             recordings_dir: Path | None = None) -> Iterator[str]:
     """``berthing-aid serve`` on free loopback ports (the damaged copies listed too); yields
     its base URL."""
     port, viser_port = _free_port(), _free_port()
-    log = (ARTIFACTS / "server.log")
+    log = (ARTIFACTS / log_name)
     ARTIFACTS.mkdir(exist_ok=True)
     with log.open("w") as out:
         proc = subprocess.Popen(
             [sys.executable, "-m", "backend.cli", "serve", str(recording), "--host", "127.0.0.1",
              "--port", str(port), "--viser-port", str(viser_port),
-             "--recordings-dir", str(faulty_recordings),
+             *(["--recordings-dir", str(recordings_dir)] if recordings_dir else []),
              # the 12 s recording's heading converges to 1° only after ~15 s: wider for the page
              "--heading-alert-limit", "3"],
             cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env={**os.environ,
-                                                                 "PYTHONUNBUFFERED": "1"})
+                                                                 "PYTHONUNBUFFERED": "1",
+                                                                 **(env or {})})
         base = f"http://127.0.0.1:{port}"
         try:
             deadline = time.monotonic() + 60
@@ -99,7 +101,7 @@ def server(recording: Path, faulty_recordings: Path) -> Iterator[str]:
                 if proc.poll() is not None:
                     pytest.fail(f"server exited ({proc.returncode}): {log.read_text()}")
                 with contextlib.suppress(OSError):
-                    _get_json(base + "/api/recordings")
+                    urllib.request.urlopen(base + "/openapi.json", timeout=5).close()
                     break
                 if time.monotonic() > deadline:
                     pytest.fail(f"server did not answer within 60 s: {log.read_text()}")
@@ -111,6 +113,12 @@ def server(recording: Path, faulty_recordings: Path) -> Iterator[str]:
                 proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 proc.kill()
+
+
+@pytest.fixture(scope="session")
+def server(recording: Path, faulty_recordings: Path) -> Iterator[str]:
+    with _serving(recording, "server.log", recordings_dir=faulty_recordings) as base:
+        yield base
 
 
 @pytest.fixture(scope="session")
@@ -610,6 +618,45 @@ def test_speed_and_a_second_screen(page, browser, server: str) -> None:
         second.close()
     # leaving did not delete the session it only watched
     assert _get_json(f"{server}/api/sessions/{sid}")["id"] == sid
+
+
+CONTROL_TOKEN, VIEW_TOKEN = "control-token-for-the-page-test", "view-token-for-the-page-test"
+
+
+def test_the_page_takes_its_token_from_the_address_and_a_viewer_only_watches(
+        browser, recording: Path) -> None:
+    """A server that requires tokens (as off loopback): the page without one says what to do;
+    with the control token from the address fragment it plays (the token leaves the address
+    bar); a second screen with the read-only token watches the same session, cannot steer."""
+    env = {"BERTHING_AID_TOKEN": CONTROL_TOKEN, "BERTHING_AID_VIEW_TOKEN": VIEW_TOKEN}
+    with _serving(recording, "server-tokens.log", env) as base:
+        bare = _open_page(browser, base, 1280, 800)
+        try:
+            bare.wait_for_function("() => window.berthing.toasts.some("
+                                   "t => t.includes('needs an access token'))", timeout=10000)
+        finally:
+            bare.close()
+        officer = _open_page(browser, base, 1280, 800, f"#token={CONTROL_TOKEN}")
+        second = None
+        try:
+            wait_frame(officer)
+            assert "token" not in officer.url
+            assert officer.evaluate("() => sessionStorage.getItem('berthing.token')") \
+                == CONTROL_TOKEN
+            sid = officer.evaluate("() => window.berthing.session.id")
+            second = _open_page(browser, base, 1280, 800, f"?session={sid}#token={VIEW_TOKEN}")
+            first = wait_frame(second)
+            assert second.evaluate("() => window.berthing.session.id") == sid
+            wait_frame(second, f"f => f.frame > {first['frame']}")  # the stream takes it too
+            second.click("#play")  # pause: refused for a read-only token
+            second.wait_for_function("() => window.berthing.toasts.some("
+                                     "t => t.includes('read-only'))", timeout=10000)
+            assert officer.evaluate("() => window.berthing.session.state") == "playing"
+            assert not second.errors and not officer.errors
+        finally:
+            if second is not None:
+                second.close()
+            officer.close()
 
 
 def test_stream_reconnects(page) -> None:

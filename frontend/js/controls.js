@@ -74,7 +74,9 @@ export class Controls {
     }
     if (!this.dragging && s.state !== "playing") this.setTime(s.seek_target_s ?? s.time_s);
     const badge = {
-      paused: "PAUSED", ended: "END OF RECORDING", error: "REPLAY STOPPED",
+      paused: "PAUSED", ended: "END OF RECORDING",
+      // what stopped it stays on screen (the toast goes): ▶ restarts the replay
+      error: `REPLAY STOPPED: ${(s.error || "unknown error").slice(0, 140)} — ▶ restarts it`,
       seeking: `SEEKING ${fmtTime(s.seek_target_s)}…`, starting: "STARTING…",
     }[s.state];
     this.badge.hidden = !badge;

@@ -4,6 +4,8 @@
 // Rendering happens on the next animation frame with the header of THAT frame, which keeps
 // the overlay exactly in step with the picture.
 
+import { accessToken } from "./api.js";
+
 const RECONNECT_MS = [500, 1000, 2000, 4000, 5000];
 const STALE_MS = 2500; // no frame for this long while playing: say so
 
@@ -51,7 +53,9 @@ export class Stream {
 
   _connect() {
     const proto = location.protocol === "https:" ? "wss:" : "ws:";
-    const ws = new WebSocket(`${proto}//${location.host}/api/sessions/${this.sessionId}/stream`);
+    const token = accessToken();
+    const query = token ? `?token=${encodeURIComponent(token)}` : "";
+    const ws = new WebSocket(`${proto}//${location.host}/api/sessions/${this.sessionId}/stream${query}`);
     ws.binaryType = "blob";
     this.ws = ws;
     this._set(this.attempt ? "reconnecting" : "connecting");
@@ -62,6 +66,10 @@ export class Stream {
       if (ev.code === 4404) { // the server says the session is gone
         this._set("closed", "session gone");
         this.h.onGone?.("the session no longer exists");
+        return;
+      }
+      if (ev.code === 4401) { // no valid access token: retrying will not help
+        this._set("closed", "access token needed");
         return;
       }
       const delay = RECONNECT_MS[Math.min(this.attempt, RECONNECT_MS.length - 1)];

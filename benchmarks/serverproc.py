@@ -1,0 +1,89 @@
+"""What the server benchmarks share: ``berthing-aid serve`` in a subprocess on a free loopback
+port, and its CPU, memory and threads read from /proc (Linux)."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_RECORDING = ROOT / "recordings" / "default"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def proc_cpu_seconds(pid: int) -> float:
+    """user + system CPU seconds of a process and its threads (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _status_field(pid: int, name: str) -> int | None:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(name + ":"):
+            return int(line.split()[1])
+    return None
+
+
+def proc_rss_mb(pid: int) -> float:
+    kb = _status_field(pid, "VmRSS")
+    return float("nan") if kb is None else kb / 1024.0
+
+
+def proc_threads(pid: int) -> int:
+    return _status_field(pid, "Threads") or 0
+
+
+@dataclass
+class Server:
+    process: subprocess.Popen
+    base: str  # http://127.0.0.1:port
+    ws: str  # ws://127.0.0.1:port
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+
+@contextmanager
+def serve(recording: Path, viewer: bool = True, extra: tuple[str, ...] = ()) -> Iterator[Server]:
+    """``berthing-aid serve RECORDING`` on a free port until the block ends (the 3-D viewer on
+    any free port, or off)."""
+    port = free_port()
+    command = [sys.executable, "-m", "backend.cli", "serve", str(recording), "--port", str(port),
+               *(["--viser-port", "0"] if viewer else ["--no-viewer"]), *extra]
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
+    process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True, env=env)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        with httpx.Client(base_url=base, timeout=10) as http:
+            for _ in range(600):
+                try:
+                    http.get("/api/recordings")
+                    break
+                except httpx.TransportError:
+                    if process.poll() is not None:
+                        raise RuntimeError(f"the server exited: {process.stderr.read()}") from None
+                    time.sleep(0.1)
+        yield Server(process, base, f"ws://127.0.0.1:{port}")
+    finally:
+        process.terminate()
+        try:
+            process.wait(10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(10)
