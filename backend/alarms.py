@@ -9,7 +9,12 @@ it is active) and clears by itself when its cause has gone.
 - **faults** the engine raised (``Fusion.alerts()``, severity ``warning``: a receiver silent,
   an IMU gap bridged, frames skipped …) stay listed while active.
 
-Berthing alarms (approach speed against distance) join the same list.
+- **berthing** (``approach-bow``, ``approach-stern``): the bow or stern closing the berth line
+  faster than the approach-speed limit for its distance (``ApproachLimit`` table, tighter as
+  the distance shrinks, in the spirit of berthing-velocity guidance): severity ``warning``
+  (amber) above the row's warning speed, ``alarm`` (red, sounding) above its alarm speed.
+  Only while the fused pose is trusted (the integrity alarm says when it is not). A rise from
+  amber to red is a new alarm (it sounds even if the amber one was acknowledged).
 """
 
 from __future__ import annotations
@@ -19,6 +24,36 @@ from dataclasses import dataclass
 from typing import Any
 
 from estimator.integrity import CRITICAL
+
+
+@dataclass(frozen=True)
+class ApproachLimit:
+    """One row of the approach-speed table: at distances below ``within_m``."""
+
+    within_m: float
+    warning_mps: float  # amber above this closing speed
+    alarm_mps: float  # red above this
+
+
+# Default: tighter as the distance shrinks; nothing beyond 50 m (the approach, not the
+# berthing). A small craft's or a large ship's own limits are set per session (API, page).
+DEFAULT_APPROACH_LIMITS = (
+    ApproachLimit(3.0, 0.10, 0.15),
+    ApproachLimit(10.0, 0.20, 0.30),
+    ApproachLimit(20.0, 0.40, 0.60),
+    ApproachLimit(50.0, 0.80, 1.20),
+)
+CLEAR_FRACTION = 0.9  # an approach alarm clears below this fraction of its limit (no chatter)
+SEVERITY_RANK = {"caution": 0, "warning": 1, "alarm": 2}
+
+
+def approach_limit(limits: tuple[ApproachLimit, ...], distance_m: float
+                   ) -> ApproachLimit | None:
+    """The row that applies at ``distance_m`` (the nearest band that contains it)."""
+    for row in sorted(limits, key=lambda r: r.within_m):
+        if distance_m < row.within_m:
+            return row
+    return None
 
 
 @dataclass
@@ -47,9 +82,12 @@ class AlarmBook:
         self._counter = 0
         self._was_trusted = False
         self._seen_alerts = 0
+        self.approach_limits: tuple[ApproachLimit, ...] = DEFAULT_APPROACH_LIMITS
 
-    def update(self, state: Any, engine_alerts: list[Any]) -> None:
-        """A new state and the engine's alert history so far."""
+    def update(self, state: Any, engine_alerts: list[Any],
+               berth: dict[str, float | None] | None = None) -> None:
+        """A new state, the engine's alert history so far and the berth geometry at that
+        state (``geometry.berth_metrics``; None without a berth line)."""
         integrity = getattr(state.status, "integrity", None)
         t = float(state.time) - self.start_gpst
         with self._lock:
@@ -68,11 +106,47 @@ class AlarmBook:
                 else:
                     self._clear(alert.kind)
             self._seen_alerts = len(engine_alerts)
+            trusted = integrity is None or integrity.trusted
+            for end in ("bow", "stern"):
+                self._approach(end, t, berth if trusted else None)
+
+    def _approach(self, end: str, t: float, berth: dict[str, float | None] | None) -> None:
+        kind = f"approach-{end}"
+        distance = None if berth is None else berth.get(f"{end}_distance_m")
+        closing = None if berth is None else berth.get(f"{end}_approach_mps")
+        row = None if distance is None else approach_limit(self.approach_limits,
+                                                           max(distance, 0.0))
+        if row is None or closing is None:
+            self._clear(kind)
+            return
+        current = self._alarms.get(kind)
+        active = current.severity if current is not None and current.active else None
+        # hysteresis: an active level holds until the speed is clearly below its limit
+        hold = {"alarm": row.alarm_mps, "warning": row.warning_mps}
+        if closing > row.alarm_mps or (active == "alarm" and
+                                       closing > CLEAR_FRACTION * hold["alarm"]):
+            severity, limit = "alarm", row.alarm_mps
+        elif closing > row.warning_mps or (active is not None and
+                                           closing > CLEAR_FRACTION * hold["warning"]):
+            severity, limit = "warning", row.warning_mps
+        else:
+            self._clear(kind)
+            return
+        self._raise(kind, severity, t,
+                    f"{end.capitalize()} closing the berth at {100 * closing:.0f} cm/s, "
+                    f"{_distance_text(distance)} off (limit {100 * limit:.0f} cm/s within "
+                    f"{row.within_m:g} m)")
+
+    def set_approach_limits(self, limits: list[ApproachLimit]) -> None:
+        with self._lock:
+            self.approach_limits = tuple(sorted(limits, key=lambda r: r.within_m))
 
     def _raise(self, kind: str, severity: str, t: float, message: str) -> None:
         current = self._alarms.get(kind)
-        if current is not None and current.active:
-            current.message = message  # still the same alarm: keep its acknowledgement
+        if current is not None and current.active and \
+                SEVERITY_RANK[severity] <= SEVERITY_RANK[current.severity]:
+            # still the same alarm (or eased to a lower level): keep its acknowledgement
+            current.message, current.severity = message, severity
             return
         self._counter += 1
         self._alarms[kind] = AlarmEntry(f"A{self._counter}", kind, severity, message, t)
@@ -104,3 +178,8 @@ class AlarmBook:
                     a.acknowledged = True
                     return a.as_dict()
         return None
+
+
+def _distance_text(d: float) -> str:
+    """A distance with the digits its range deserves (cm below 5 m, dm below 50 m)."""
+    return f"{d:.2f} m" if d < 5 else f"{d:.1f} m" if d < 50 else f"{d:.0f} m"

@@ -1,43 +1,290 @@
-"""A session's berth line: set from two (north, east) points, from two pixels of a frame, or
-given by the recording; the bow and stern distance and approach speed against it."""
+"""A session's berth line: fitted to the quay face under the officer's clicks, typed in from
+the bow, set from two (north, east) points or given by the recording, and nudged; the berth
+geometry (``geometry.berth_metrics``) against it.
+
+Clicks in the video (coping, wall or water line: all on the quay's vertical face) give only
+their *directions* in plan; the line's place comes from the converged port-structure points of
+the quay face between them (``fit_quay_face``): a vertical plane fitted through them, with its
+σ. A pixel's depth along the water plane is ill-conditioned from a camera a metre above the
+water (a pixel is ~0.3 m at 15 m); the face's points are not. Only where there is no structure
+near the clicks does the line fall back to the click rays' intersections with the water plane
+(``method`` = ``water-plane``, with a note saying so).
+"""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from engine.camera import Projector, camera_pose, water_plane_point
+from engine.camera import CameraPose, Projector, camera_pose, water_plane_point
+from engine.targets import Structure
+from estimator.landmarks import converged
 from recordings.format import Recording
 
 from .errors import Unprocessable
-from .geometry import berth_metrics
+from .geometry import berth_metrics, heading_rotation
 from .models import MAX_PLAN_M
 
 MIN_LENGTH_M = 0.1  # the two points of a berth line at least this far apart
+CLICK_RADII = (0.05, 0.1)  # structure points "under" a click: these fractions of the image width
+HYPOTHESIS_GATE_M = 0.25  # a point supports a hypothetical face this near it
+REFIT_GATE_M = 0.5  # the chosen face is re-fitted to the points this near it
+EXTEND_M = 30.0  # ... and to those this far beyond the clicks along it
+FRONT_DEPTH_M = 1.0  # faces this close behind the nearest one are the same surface
+FACE_GATE_M = 1.5  # a line clicked in plan: fitted to the points this near it
+SECTOR_MARGIN_DEG = 2.0  # the face is fitted between the clicks' directions, widened by this
+MIN_FACE_POINTS = 8  # fewer than this: no face fit (water plane)
+ABOVE_WATER_M = 0.1  # structure points at most this far above the water plane are not quay
+MIN_INLIER_GATE_M = 0.15
+CORRELATED_FRACTION = 0.002  # σ of the line shared by all its points, per metre of range
+MIN_POINT_SIGMA_M = 0.02  # a structure point's σ taken as at least this in the fit
+WATER_PLANE_NOTE = ("no converged port structure near the clicks: the line is where the click "
+                    "rays meet the water plane, to a few pixels' worth of metres (click the "
+                    "quay's water line exactly, or wait for the quay's points to converge)")
 
 
-@dataclass
+@dataclass(frozen=True)
 class BerthLine:
     line_ne: np.ndarray  # (2,2) north, east
-    source: str  # "recording", "ned" or "image"
+    source: str  # "recording", "ned", "image", "typed"
     # "world": the engine's frame; "recording": the recording's local level (hull.json), mapped
     # to the world frame through the fused absolute position (SPP-anchored: metre-level)
     frame: str = "world"
+    method: str | None = None  # "quay-face" | "water-plane" | None (as given)
+    sigma_m: float | None = None  # 1-σ of the line across itself (at its middle)
+    sigma_deg: float | None = None  # 1-σ of its direction
+    support: int = 0  # structure points the face was fitted to
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class FaceFit:
+    """A vertical plane (a line in plan) fitted to quay-face points."""
+
+    centre: np.ndarray  # (2,) north, east
+    direction: np.ndarray  # (2,) unit
+    sigma_m: float  # σ of the offset at the centre
+    sigma_rad: float  # σ of the direction
+    support: int
+    rms_m: float
+
+
+def fit_line(points_ne: np.ndarray, sigma: np.ndarray) -> FaceFit | None:
+    """Weighted (1/σ²) total-least-squares line through plan points, re-fitted without the
+    points beyond 3 of their σ (and the fit's scatter) from it; None with fewer than
+    MIN_FACE_POINTS. Its σ: the weighted least-squares σ, scaled up by the scatter when the
+    points lie farther from the line than their σ say."""
+    p = np.asarray(points_ne, dtype=float).reshape(-1, 2)
+    sig = np.maximum(np.asarray(sigma, dtype=float), MIN_POINT_SIGMA_M)
+    w = 1.0 / sig ** 2
+    keep = np.ones(len(p), dtype=bool)
+    fit = None
+    for _ in range(5):
+        n = int(keep.sum())
+        if n < MIN_FACE_POINTS:
+            return None
+        pk, wk = p[keep], w[keep]
+        centre = (wk[:, None] * pk).sum(axis=0) / wk.sum()
+        d = pk - centre
+        cov = (wk[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / wk.sum()
+        _, vecs = np.linalg.eigh(cov)
+        direction, normal = vecs[:, 1], vecs[:, 0]
+        residual = (p - centre) @ normal
+        chi2 = float((wk * residual[keep] ** 2).sum()) / max(n - 2, 1)
+        factor = max(1.0, chi2)
+        along = d @ direction
+        rms = float(np.sqrt(np.mean(residual[keep] ** 2)))
+        fit = FaceFit(centre, direction, float(np.sqrt(factor / wk.sum())),
+                      float(np.sqrt(factor / max(float((wk * along ** 2).sum()), 1e-9))), n, rms)
+        new = np.abs(residual) <= np.maximum(3.0 * np.sqrt(sig ** 2 * factor),
+                                             MIN_INLIER_GATE_M)
+        if (new == keep).all():
+            break
+        keep = new
+    return fit
+
+
+def _azimuth(v: np.ndarray) -> np.ndarray:
+    return np.arctan2(v[..., 1], v[..., 0])
+
+
+def _wrap(a: np.ndarray | float) -> np.ndarray:
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _ray_line(origin: np.ndarray, azimuth: float, centre: np.ndarray, direction: np.ndarray
+              ) -> np.ndarray | None:
+    """Where the plan ray from ``origin`` at ``azimuth`` meets the line (None: it does not)."""
+    r = np.array([np.cos(azimuth), np.sin(azimuth)])
+    A = np.column_stack([r, -direction])
+    if abs(np.linalg.det(A)) < 1e-6:
+        return None
+    s, _ = np.linalg.solve(A, centre - origin)
+    return None if s <= 0 else origin + s * r
+
+
+def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
+                  structure: Structure, water_down_m: float | None) -> BerthLine | None:
+    """The berth line on the quay face between two clicks of the frame seen from ``pose``
+    (module docstring); None when the structure does not support it.
+
+    Hypotheses: the vertical planes through a point under the first click and one under the
+    second (points projecting within ``CLICK_RADII`` of the image width, nearer first). A
+    hypothesis stands when points of it lie under both clicks; of those standing, the clicked
+    surface is the nearest (what a pixel shows is the first surface along its ray), and of the
+    planes of that surface the best supported is fitted to all its points between the clicks
+    and up to ``EXTEND_M`` beyond them."""
+    pts = np.asarray(structure.points, dtype=float).reshape(-1, 3)
+    if len(pts) < MIN_FACE_POINTS:
+        return None
+    sigma = np.asarray(structure.sigma, dtype=float).ravel()
+    cam = pose.position_ned
+    finite = np.isfinite(pts).all(axis=1)
+    pts = np.where(finite[:, None], pts, 0.0)
+    usable = finite & converged(sigma, np.linalg.norm(pts - cam, axis=1))
+    if water_down_m is not None:  # at or below the water: reflections, not the quay
+        usable &= pts[:, 2] < water_down_m - ABOVE_WATER_M
+    _, uv = projector.project_points(pose, pts)
+    clicks = np.asarray(clicks_uv, dtype=float).reshape(2, 2)
+    rays = [projector.pixel_ray(pose, u, v) for u, v in clicks]
+    click_az = [float(np.arctan2(r[1], r[0])) for r in rays]
+    azimuths = _azimuth(pts[:, :2] - cam[:2])
+    half = abs(float(_wrap(click_az[1] - click_az[0]))) / 2
+    mid = float(_wrap(click_az[0] + _wrap(click_az[1] - click_az[0]) / 2))
+    sector = usable & (np.abs(_wrap(azimuths - mid)) <= half + np.radians(SECTOR_MARGIN_DEG))
+    chosen = None
+    for radius in CLICK_RADII:  # the nearest points under the clicks first
+        with np.errstate(invalid="ignore"):
+            under = [usable & (np.hypot(uv[:, 0] - u, uv[:, 1] - v) <= radius * projector.width)
+                     for u, v in clicks]
+        chosen = _front_face(pts, under, sector, rays, cam)
+        if chosen is not None:
+            break
+    if chosen is None:
+        return None
+    # the face goes on beyond the clicks: its points out there steady the line's direction
+    centre, direction = chosen
+    span = float(np.ptp(np.concatenate([(pts[m, :2] - centre) @ direction for m in under])))
+    fit = None
+    for _ in range(3):  # the chosen pair's plane, then the fitted one
+        normal_c = np.array([-direction[1], direction[0]])
+        along = (pts[:, :2] - centre) @ direction
+        mid_along = float(np.mean(along[under[0] | under[1]]))
+        near = np.abs((pts[:, :2] - centre) @ normal_c) <= REFIT_GATE_M
+        beyond = np.abs(along - mid_along) <= span / 2 + EXTEND_M
+        members = np.flatnonzero(usable & near & (sector | beyond))
+        fit = fit_line(pts[members, :2], sigma[members])
+        if fit is None:
+            return None
+        centre, direction = fit.centre, fit.direction
+    ends = [_ray_line(cam[:2], az, fit.centre, fit.direction) for az in click_az]
+    if any(e is None for e in ends) or np.linalg.norm(ends[1] - ends[0]) < MIN_LENGTH_M:
+        return None
+    # the points' errors are not independent (one VO scale, the poses they were triangulated
+    # from): a σ proportional to the range stands for what they share
+    shared = CORRELATED_FRACTION * float(np.linalg.norm(fit.centre - cam[:2]))
+    return BerthLine(np.array(ends), "image", method="quay-face",
+                     sigma_m=float(np.hypot(fit.sigma_m, shared)),
+                     sigma_deg=float(np.degrees(fit.sigma_rad)), support=fit.support)
+
+
+def _front_face(pts: np.ndarray, under: list[np.ndarray], sector: np.ndarray,
+                rays: list[np.ndarray], cam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(point, direction) of the nearest well-supported vertical plane through a point under
+    each click (``fit_quay_face``), None when there is none."""
+    if any(m.sum() < 1 for m in under):
+        return None
+    ia, ib = np.flatnonzero(under[0]), np.flatnonzero(under[1])
+    pa = np.repeat(pts[ia, :2], len(ib), axis=0)
+    d = np.tile(pts[ib, :2], (len(ia), 1)) - pa
+    length = np.linalg.norm(d, axis=1)
+    ok = length > 0.5
+    if not ok.any():
+        return None
+    pa, d = pa[ok], d[ok] / length[ok, None]
+    normal = np.column_stack([-d[:, 1], d[:, 0]])
+    cand = np.flatnonzero(sector | under[0] | under[1])
+    res = np.abs(np.einsum("hnk,hk->hn", pts[cand, :2][None] - pa[:, None], normal))
+    inlier = res <= HYPOTHESIS_GATE_M  # (hypotheses, candidates)
+    support_a = (inlier & under[0][cand][None]).sum(axis=1)
+    support_b = (inlier & under[1][cand][None]).sum(axis=1)
+    total = (inlier & sector[cand][None]).sum(axis=1)
+    standing = (support_a >= 2) & (support_b >= 2) & (total >= MIN_FACE_POINTS)
+    # range along each click ray to the hypothesis' plane (in plan)
+    ranges = []
+    for r in rays:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ranges.append(np.einsum("hk,hk->h", pa - cam[:2], normal) / (normal @ r[:2])
+                          / max(float(np.linalg.norm(r[:2])), 1e-9))
+    reach = np.maximum(ranges[0], ranges[1])
+    standing &= np.isfinite(reach) & (ranges[0] > 0) & (ranges[1] > 0)
+    if not standing.any():
+        return None
+    nearest = float(reach[standing].min())
+    front = standing & (reach <= nearest + FRONT_DEPTH_M)
+    best = int(np.argmax(np.where(front, total, -1)))
+    return pa[best], d[best]
+
+
+def snap_to_face(line_ne: np.ndarray, structure: Structure, water_down_m: float | None,
+                 camera_ned: np.ndarray) -> BerthLine | None:
+    """A line clicked in the plan, fitted to the converged above-water structure points within
+    FACE_GATE_M of it (None when there are too few)."""
+    pts = np.asarray(structure.points, dtype=float).reshape(-1, 3)
+    if len(pts) < MIN_FACE_POINTS:
+        return None
+    sigma = np.asarray(structure.sigma, dtype=float).ravel()
+    usable = np.isfinite(pts).all(axis=1) & converged(
+        sigma, np.linalg.norm(pts - np.asarray(camera_ned, dtype=float), axis=1))
+    if water_down_m is not None:
+        usable &= pts[:, 2] < water_down_m - ABOVE_WATER_M
+    a, b = np.asarray(line_ne, dtype=float).reshape(2, 2)
+    length = float(np.linalg.norm(b - a))
+    d = (b - a) / length
+    n = np.array([-d[1], d[0]])
+    along = (pts[:, :2] - a) @ d
+    candidates = usable & (np.abs((pts[:, :2] - a) @ n) <= FACE_GATE_M) \
+        & (along >= -0.1 * length) & (along <= 1.1 * length)
+    fit = fit_line(pts[candidates, :2], sigma[candidates])
+    if fit is None:
+        return None
+    ends = [fit.centre + float(np.dot(p - fit.centre, fit.direction)) * fit.direction
+            for p in (a, b)]
+    shared = CORRELATED_FRACTION * float(np.linalg.norm(fit.centre - np.asarray(camera_ned)[:2]))
+    return BerthLine(np.array(ends), "ned", method="quay-face",
+                     sigma_m=float(np.hypot(fit.sigma_m, shared)),
+                     sigma_deg=float(np.degrees(fit.sigma_rad)), support=fit.support)
+
+
+def line_from_bow(state: Any, hull_outline_body: np.ndarray, distance_m: float,
+                  bearing_deg: float, half_length_m: float = 50.0) -> np.ndarray:
+    """A berth line typed in from the bow: ``distance_m`` from the hull's foremost point, in
+    the direction ``bearing_deg`` relative to the ship's head (0 ahead, 90 starboard, -90
+    port); the line runs across that direction."""
+    outline = np.asarray(hull_outline_body, dtype=float)[:, :2]
+    bow_body = outline[np.argmax(outline[:, 0])]
+    yaw = float(state.euler[2])
+    bow = np.asarray(state.position_ned, dtype=float)[:2] + heading_rotation(yaw) @ bow_body
+    az = yaw + np.radians(bearing_deg)
+    normal = np.array([np.cos(az), np.sin(az)])
+    foot = bow + distance_m * normal
+    along = np.array([-normal[1], normal[0]])
+    return np.array([foot - half_length_m * along, foot + half_length_m * along])
 
 
 class Berth:
     """The berth line of a session (``line`` may be None)."""
 
-    def __init__(self, rec: Recording, projector: Projector, water_down_m: float,
+    def __init__(self, rec: Recording, projector: Projector, water_down_m: float | None,
                  origin_in_recording: Callable[[Any], np.ndarray], lock: threading.RLock
                  ) -> None:
         self.rec = rec
         self.projector = projector
-        self.water_down_m = water_down_m
+        self.water_down_m = water_down_m  # None: the water level is unknown (no fallback)
         self._origin_in_recording = origin_in_recording
         self.lock = lock
         self.line: BerthLine | None = None
@@ -45,7 +292,8 @@ class Berth:
             self.line = BerthLine(np.asarray(rec.hull.berth_line_ned, float).reshape(2, 2),
                                   "recording", frame="recording")
 
-    def set_ned(self, line_ne: np.ndarray, source: str = "ned") -> BerthLine:
+    @staticmethod
+    def _check(line_ne: np.ndarray) -> np.ndarray:
         line = np.asarray(line_ne, dtype=float).reshape(2, 2)
         if not np.isfinite(line).all() or np.abs(line).max() > MAX_PLAN_M:
             raise Unprocessable(f"the berth line's points must lie within {MAX_PLAN_M:g} m of "
@@ -53,27 +301,79 @@ class Berth:
         if np.linalg.norm(line[1] - line[0]) < MIN_LENGTH_M:
             raise Unprocessable(f"the berth line's two points are less than {MIN_LENGTH_M:g} m "
                                 "apart")
-        with self.lock:
-            self.line = BerthLine(line, source)
-            return self.line
+        return line
 
-    def set_image(self, state: Any, points_uv: np.ndarray) -> BerthLine:
-        """Berth line from two pixels on the quay's water line of the frame of ``state`` (their
-        rays meet the water plane)."""
+    def _set(self, line: BerthLine) -> BerthLine:
+        self._check(line.line_ne)
+        with self.lock:
+            self.line = line
+            return line
+
+    def set_ned(self, line_ne: np.ndarray, snap: bool = False, structure: Structure | None = None,
+                camera_ned: np.ndarray | None = None) -> BerthLine:
+        """Two plan points; with ``snap`` fitted to the quay face's points near them when the
+        structure has enough (else as given, and the note says so)."""
+        line = self._check(line_ne)
+        if snap and structure is not None and camera_ned is not None:
+            fitted = snap_to_face(line, structure, self.water_down_m, camera_ned)
+            if fitted is not None:
+                return self._set(fitted)
+            return self._set(BerthLine(line, "ned", note="no converged port structure near "
+                                       "the clicked line: kept as clicked"))
+        return self._set(BerthLine(line, "ned"))
+
+    def set_image(self, state: Any, points_uv: np.ndarray, structure: Structure) -> BerthLine:
+        """Berth line from two clicks on the quay (coping, wall or water line) of the frame of
+        ``state``: fitted to the quay face, else on the water plane (module docstring)."""
         pose = camera_pose(state, self.rec.calibration.camera)
         p = self.projector
-        ends = []
-        for u, v in np.asarray(points_uv, dtype=float).reshape(2, 2):
+        clicks = np.asarray(points_uv, dtype=float).reshape(2, 2)
+        for u, v in clicks:
             if not (-0.5 <= u <= p.width - 0.5 and -0.5 <= v <= p.height - 0.5):
                 raise Unprocessable(f"pixel ({u:g}, {v:g}) is outside the {p.width}x{p.height}"
                                     " image")
-            hit = water_plane_point(pose.position_ned, p.pixel_ray(pose, u, v),
-                                    self.water_down_m)
+        fitted = fit_quay_face(p, pose, clicks, structure, self.water_down_m)
+        if fitted is not None:
+            return self._set(fitted)
+        ends = []
+        for u, v in clicks:
+            hit = None if self.water_down_m is None else water_plane_point(
+                pose.position_ned, p.pixel_ray(pose, u, v), self.water_down_m)
             if hit is None:
-                raise Unprocessable(f"pixel ({u:g}, {v:g}) is above the horizon: its ray does "
-                                    "not meet the water plane")
+                raise Unprocessable(
+                    f"pixel ({u:g}, {v:g}): no converged port structure near the clicks and "
+                    "its ray does not meet the water plane (above the horizon, or the water "
+                    "level is unknown); click the quay where its points are shown, or type "
+                    "the line in from the bow")
             ends.append(hit[:2])
-        return self.set_ned(np.array(ends), source="image")
+        return self._set(BerthLine(np.array(ends), "image", method="water-plane",
+                                   note=WATER_PLANE_NOTE))
+
+    def set_from_bow(self, state: Any, distance_m: float, bearing_deg: float) -> BerthLine:
+        line = line_from_bow(state, self.rec.hull.outline_body, distance_m, bearing_deg)
+        return self._set(BerthLine(line, "typed"))
+
+    def nudge(self, state: Any | None, offset_m: float, rotate_deg: float) -> BerthLine:
+        """Move the line ``offset_m`` away from the ship (negative: towards it) and turn it
+        ``rotate_deg`` (clockwise seen from above) about its middle."""
+        with self.lock:
+            line = self.line
+        if line is None:
+            raise Unprocessable("there is no berth line to nudge: set one first")
+        world = self.world(state)
+        if world is None:
+            raise Unprocessable("the recording's berth line is placed from the first fused "
+                                "pose: nudge it once the fusion runs")
+        centre = world.mean(axis=0)
+        d = world[1] - world[0]
+        normal = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+        if state is not None and np.dot(np.asarray(state.position_ned)[:2] - centre,
+                                        normal) > 0:
+            normal = -normal  # away from the ship
+        R = heading_rotation(np.radians(rotate_deg))
+        moved = (world - centre) @ R.T + centre + offset_m * normal
+        return self._set(replace(line, line_ne=moved, frame="world",
+                                 source=line.source if line.frame == "world" else "ned"))
 
     def clear(self) -> None:
         with self.lock:
@@ -91,20 +391,40 @@ class Berth:
             return None
         return line.line_ne - self._origin_in_recording(state)[:2]
 
+    def metrics(self, state: Any | None) -> dict[str, float | None] | None:
+        """The berth geometry at ``state`` (None without a line or a state)."""
+        line = self.line
+        world = self.world(state)
+        if line is None or world is None or state is None:
+            return None
+        return berth_metrics(state, self.rec.hull, world, line.sigma_m, line.sigma_deg)
+
     def status(self, state: Any | None, start_gpst: float) -> dict[str, Any]:
-        """The line with the bow/stern distance and approach speed at ``state``."""
+        """The line with the berth geometry at ``state``."""
         with self.lock:
             line = self.line
-        out: dict[str, Any] = {"line_ne": None, "source": None, "t": None,
-                               "bow_distance_m": None, "stern_distance_m": None,
-                               "bow_approach_mps": None, "stern_approach_mps": None}
+        out: dict[str, Any] = {"line_ne": None, "source": None, "method": None, "t": None,
+                               "sigma_m": None, "sigma_deg": None, "support_points": 0,
+                               "note": ""}
+        out.update(dict.fromkeys(METRIC_KEYS))
         if line is None:
             return out
-        out["source"] = line.source
+        out.update(source=line.source, method=line.method, support_points=line.support,
+                   note=line.note, sigma_m=_r(line.sigma_m), sigma_deg=_r(line.sigma_deg))
         world = self.world(state)
         if world is not None:
             out["line_ne"] = world.round(3).tolist()
-        if state is not None and world is not None:
+        metrics = self.metrics(state)
+        if metrics is not None:
             out["t"] = float(state.time) - start_gpst
-            out.update(berth_metrics(state, self.rec.hull, world))
+            out.update({k: _r(v) for k, v in metrics.items()})
         return out
+
+
+METRIC_KEYS = ("bow_distance_m", "stern_distance_m", "bow_approach_mps", "stern_approach_mps",
+               "bow_distance_sigma_m", "stern_distance_sigma_m", "along_berth_mps", "angle_deg",
+               "time_to_contact_s", "nearest_distance_m")
+
+
+def _r(x: float | None) -> float | None:
+    return None if x is None or not np.isfinite(x) else round(float(x), 3)

@@ -10,15 +10,38 @@ import numpy as np
 
 from estimator.records import Hull
 
+# Fixed distance bands (m) of the structure points, the same on every frame and in the legend:
+# a colour means the same distance all through the approach.
+DISTANCE_BANDS_M = (2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
+# day colours of the bands, nearest first (the page has its night ones, css/base.css)
+BAND_COLORS = ("#ff2a2a", "#ff8c1a", "#ffd21a", "#3cc85a", "#1ab4e6", "#3c64ff", "#8c8cb4")
 
-def hue_color(distance: np.ndarray, max_distance: float) -> list[str]:
-    """'#rrggbb' colours by distance: red (near) through yellow, green, cyan to blue (far)."""
-    h6 = 4.0 * np.clip(np.asarray(distance, dtype=float) / max(max_distance, 1e-6), 0.0, 1.0)
-    r = np.clip(2.0 - h6, 0.0, 1.0)  # hue 0..240 deg = h6 0..4 on the HSV hexagon
-    g = np.clip(np.minimum(h6, 4.0 - h6), 0.0, 1.0)
-    b = np.clip(h6 - 2.0, 0.0, 1.0)
-    rgb = np.round(np.column_stack([r, g, b]) * 255).astype(int)
-    return [f"#{c[0]:02x}{c[1]:02x}{c[2]:02x}" for c in rgb]
+
+def distance_band(distance: np.ndarray) -> np.ndarray:
+    """Index into ``BAND_COLORS`` of each distance (0: under 2 m … 6: 100 m and more)."""
+    return np.searchsorted(DISTANCE_BANDS_M, np.asarray(distance, dtype=float), side="right")
+
+
+def band_color(distance: np.ndarray) -> list[str]:
+    return [BAND_COLORS[int(b)] for b in distance_band(distance)]
+
+
+def polygon_distances(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Distances (m) from plan points (N,2) to a closed polygon (M,2), 0 inside it."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    a = np.asarray(polygon, dtype=float)
+    ab = np.roll(a, -1, axis=0) - a
+    rel = pts[:, None, :] - a[None]  # (N,M,2)
+    s = np.clip(np.einsum("nmk,mk->nm", rel, ab) / np.maximum(np.einsum("mk,mk->m", ab, ab),
+                                                               1e-12), 0.0, 1.0)
+    d = np.linalg.norm(rel - s[..., None] * ab[None], axis=2).min(axis=1)
+    # even-odd rule for inside
+    x, y = pts[:, 0:1], pts[:, 1:2]
+    (x1, y1), (x2, y2) = a.T[:, None, :], np.roll(a, -1, axis=0).T[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        crosses = ((y1 > y) != (y2 > y)) & (x < x1 + (y - y1) * (x2 - x1) / (y2 - y1))
+    inside = crosses.sum(axis=1) % 2 == 1
+    return np.where(inside, 0.0, d)
 
 
 # ------------------------------------------------------------------------ the ship's plan
@@ -46,12 +69,24 @@ def densify(polygon: np.ndarray, step: float) -> np.ndarray:
     return np.concatenate(out)
 
 
-def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray) -> dict[str, float | None]:
-    """Bow and stern distance to the berth line and their approach speeds (crews' terms).
+def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
+                  line_sigma_m: float | None = None, line_sigma_deg: float | None = None
+                  ) -> dict[str, float | None]:
+    """The ship against the berth line as pilots' docking displays give it (crews' terms).
 
-    The bow (stern) distance is the smallest perpendicular distance from the fore (aft) half
-    of the hull outline to the infinite berth line; its approach speed is the velocity of
-    that hull point (ship velocity + rate of turn x lever) towards the line, positive closing.
+    - bow (stern) distance: from the hull's foremost (aftmost) point, perpendicular to the
+      infinite berth line (of several equally far forward points, e.g. a transom's corners,
+      the one nearest the line), positive on the ship's side;
+    - bow (stern) approach speed: that point's velocity (ship velocity + rate of turn x lever)
+      towards the line, positive closing;
+    - along-berth speed: the ship's velocity along the line, positive in the direction the
+      bow points along it;
+    - angle to the berth: between the centreline and the line (deg, -90..90), positive when
+      the bow is nearer the line than the stern;
+    - time to contact: the first hull point to reach the line at its present closing speed
+      (None when nothing closes);
+    - σ of the bow and stern distance: the line's σ (offset at its middle, direction), the
+      fused position's σ across the line and the heading's σ through the point's lever arm.
     """
     line = np.asarray(line_ne, dtype=float).reshape(2, 2)
     direction = line[1] - line[0]
@@ -60,26 +95,69 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray) -> dict[str, floa
         raise ValueError("the berth line's two points coincide")
     direction /= length
     normal = np.array([-direction[1], direction[0]])
-    outline_body = densify(np.asarray(hull.outline_body, dtype=float)[:, :2], 0.25)
-    R = heading_rotation(float(state.euler[2]))
+    middle = line.mean(axis=0)
+    outline_body = np.asarray(hull.outline_body, dtype=float)[:, :2]
+    yaw = float(state.euler[2])
+    R = heading_rotation(yaw)
     centre = np.asarray(state.position_ned, dtype=float)[:2]
-    points = outline_body @ R.T + centre
     side = np.sign(float(np.dot(centre - line[0], normal))) or 1.0
-    signed = (points - line[0]) @ normal * side  # > 0 on the ship's side of the line
+    normal = normal * side  # from the line towards the ship
     velocity = np.asarray(state.velocity_ned, dtype=float)[:2]
     r = float(state.rate_of_turn)
+    pos_var = _plan_variance(state, normal)
+    yaw_var = _yaw_variance(state)
+
+    def point(body_xy: np.ndarray) -> tuple[float, float, float]:
+        """distance, closing speed, σ of the distance of a hull point."""
+        lever = R @ body_xy
+        p = centre + lever
+        v_point = velocity + r * np.array([-lever[1], lever[0]])  # omega_down x lever (NE)
+        d_dpsi = float(np.dot(normal, np.array([-lever[1], lever[0]])))
+        var = pos_var + yaw_var * d_dpsi ** 2 + (line_sigma_m or 0.0) ** 2 \
+            + (np.radians(line_sigma_deg or 0.0) * float(np.dot(p - middle, direction))) ** 2
+        return float(np.dot(p - line[0], normal)), float(-np.dot(v_point, normal)), \
+            float(np.sqrt(var))
+
     out: dict[str, float | None] = {}
-    for name, half in (("bow", outline_body[:, 0] >= 0.0), ("stern", outline_body[:, 0] < 0.0)):
-        if not half.any():
-            out[f"{name}_distance_m"] = out[f"{name}_approach_mps"] = None
-            continue
-        idx = np.flatnonzero(half)
-        # of the (nearly) nearest points, the one nearest the bow (stern) end: a hull side
-        # parallel to the line has many equally near points
-        near = idx[signed[idx] <= signed[idx].min() + 0.01]
-        i = near[np.argmax(np.abs(outline_body[near, 0]))]
-        lever = points[i] - centre
-        v_point = velocity + r * np.array([-lever[1], lever[0]])  # omega_down x lever in NE
-        out[f"{name}_distance_m"] = float(signed[i])
-        out[f"{name}_approach_mps"] = float(-np.dot(v_point, normal) * side)
+    x = outline_body[:, 0]
+    for name, ends in (("bow", x >= x.max() - 0.01), ("stern", x <= x.min() + 0.01)):
+        candidates = [point(b) for b in outline_body[ends]]
+        d, closing, sigma = min(candidates, key=lambda c: c[0])
+        out[f"{name}_distance_m"] = d
+        out[f"{name}_approach_mps"] = closing
+        out[f"{name}_distance_sigma_m"] = sigma
+    heading = R[:, 0]
+    along = direction if np.dot(direction, heading) >= 0 else -direction
+    out["along_berth_mps"] = float(np.dot(velocity, along))
+    angle = float(np.degrees(np.arcsin(np.clip(abs(np.dot(heading, normal)), 0.0, 1.0))))
+    out["angle_deg"] = angle if out["bow_distance_m"] <= out["stern_distance_m"] else -angle
+    # time to contact: the whole outline (a shoulder or quarter may touch first)
+    dense = densify(outline_body, 0.25)
+    levers = dense @ R.T
+    dist = (centre + levers - line[0]) @ normal
+    closing = -(velocity + r * np.column_stack([-levers[:, 1], levers[:, 0]])) @ normal
+    moving = closing > MIN_CLOSING_MPS
+    out["time_to_contact_s"] = float(np.min(np.maximum(dist[moving], 0.0) / closing[moving])) \
+        if moving.any() else None
+    out["nearest_distance_m"] = float(dist.min())
     return out
+
+
+MIN_CLOSING_MPS = 0.005  # slower than this is not closing (no time to contact)
+
+
+def _plan_variance(state: Any, normal: np.ndarray) -> float:
+    cov = getattr(state, "position_cov", None)
+    if cov is None:
+        return 0.0
+    P = np.asarray(cov, dtype=float)[:2, :2]
+    v = float(normal @ P @ normal)
+    return v if np.isfinite(v) and v > 0 else 0.0
+
+
+def _yaw_variance(state: Any) -> float:
+    cov = getattr(state, "attitude_cov", None)
+    if cov is None:
+        return 0.0
+    v = float(np.asarray(cov, dtype=float)[2, 2])
+    return v if np.isfinite(v) and v > 0 else 0.0

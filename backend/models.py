@@ -27,6 +27,8 @@ SPEED_MIN, SPEED_MAX = 0.01, 100.0  # replay speed factor
 MAX_TIME_S = 1.0e6  # any time in the API, s since the recording start (recordings are shorter)
 MAX_PLAN_M = 10_000.0  # |north|, |east| of a berth line point, m
 MAX_PIXEL = 100_000.0  # |u|, |v| of a pixel (the image size is checked after)
+MAX_BERTH_DISTANCE_M = 5_000.0  # a typed-in berth line, an approach-limit row
+MAX_NUDGE_M, MAX_NUDGE_DEG = 50.0, 45.0
 
 
 def _one_error(kind: str, message: str) -> WrapValidator:
@@ -374,34 +376,118 @@ class TargetList(BaseModel):
     targets: list[TargetOut]
 
 
-class BerthLineRequest(Strict):
-    """Exactly one of ``image_points`` and ``ned`` (the schema's ``oneOf``)."""
+class BerthFromBow(Strict):
+    distance_m: Annotated[float, Field(ge=0.0, le=MAX_BERTH_DISTANCE_M)] = Field(
+        description="from the hull's foremost point to the line, perpendicular to it")
+    bearing_deg: Annotated[float, Field(ge=-180.0, le=180.0)] = Field(
+        description="direction of the line from the bow, relative to the ship's head: 0 "
+                    "ahead, 90 starboard, -90 port; the line runs across it")
 
-    model_config = ConfigDict(json_schema_extra={"oneOf": [{"required": ["image_points"]},
-                                                           {"required": ["ned"]}]})
+
+class BerthLineRequest(Strict):
+    """Exactly one of ``image_points``, ``ned`` and ``from_bow`` (the schema's ``oneOf``)."""
+
+    model_config = ConfigDict(json_schema_extra={"oneOf": [
+        {"required": ["image_points"], "not": {"required": ["snap"]}},
+        {"required": ["ned"]},
+        {"required": ["from_bow"], "not": {"required": ["snap"]}}]})
 
     # not nullable: absent means absent (defaults are not validated)
     image_points: Annotated[list[PixelPoint], Field(min_length=2, max_length=2)] = Field(
-        None, description="two pixels on the quay's water line of the frame at `frame_time`")
+        None, description="two clicks on the quay (coping, wall or water line) of the frame at "
+                          "`frame_time`: the line is fitted to the quay face's port-structure "
+                          "points between them (`method` quay-face), or where there are none, "
+                          "where the clicks' rays meet the water plane (`method` water-plane)")
     frame_time: FrameTime = "current"
     ned: Annotated[list[PlanPoint], Field(min_length=2, max_length=2)] = Field(
         None, description=f"two (north, east) points, |north|, |east| <= {MAX_PLAN_M:g} m")
+    snap: bool = Field(None, description="with `ned`: fit the line to the quay face's points "
+                                         "near it (as clicked when there are none)")
+    from_bow: BerthFromBow = Field(None, description="typed in: distance and direction from "
+                                                     "the bow at the current pose")
 
     @model_validator(mode="after")
     def _one(self) -> BerthLineRequest:
-        if (self.image_points is None) == (self.ned is None):
-            raise ValueError("give exactly one of 'image_points' and 'ned'")
+        given = [name for name in ("image_points", "ned", "from_bow")
+                 if getattr(self, name) is not None]
+        if len(given) != 1:
+            raise ValueError("give exactly one of 'image_points', 'ned' and 'from_bow'")
+        if self.snap is not None and self.ned is None:
+            raise ValueError("'snap' goes with 'ned' only")
         return self
 
 
-class BerthLineStatus(BaseModel):
+class BerthNudge(Strict):
+    offset_m: Annotated[float, Field(ge=-MAX_NUDGE_M, le=MAX_NUDGE_M)] = Field(
+        0.0, description="move the line this far away from the ship (negative: towards it)")
+    rotate_deg: Annotated[float, Field(ge=-MAX_NUDGE_DEG, le=MAX_NUDGE_DEG)] = Field(
+        0.0, description="turn it about its middle, clockwise seen from above")
+
+
+class BerthGeometry(BaseModel):
+    """The ship against the berth line (``backend.geometry.berth_metrics``)."""
+
+    bow_distance_m: float | None = Field(
+        None, description="from the hull's foremost point, perpendicular to the line")
+    stern_distance_m: float | None = Field(None, description="from the hull's aftmost point")
+    bow_approach_mps: float | None = Field(None, description="positive when closing")
+    stern_approach_mps: float | None = None
+    bow_distance_sigma_m: float | None = Field(
+        None, description="1-σ: the line's, the position's and the heading's")
+    stern_distance_sigma_m: float | None = None
+    along_berth_mps: float | None = Field(
+        None, description="speed along the line, positive the way the bow points along it")
+    angle_deg: float | None = Field(
+        None, description="between the centreline and the line, positive bow in")
+    time_to_contact_s: float | None = Field(
+        None, description="until the first hull point reaches the line at the present closing "
+                          "speeds; null when nothing closes")
+    nearest_distance_m: float | None = Field(None, description="of the whole hull outline")
+
+
+BerthSource = Literal["recording", "ned", "image", "typed"]
+BerthMethod = Literal["quay-face", "water-plane"]
+
+
+class BerthLineStatus(BerthGeometry):
     line_ne: list[Vec2] | None
-    source: str | None = Field(description="recording | ned | image")
+    source: BerthSource | None = Field(description="recording | ned | image | typed")
+    method: BerthMethod | None = Field(
+        None, description="quay-face: fitted to the port structure; water-plane: click rays "
+                          "on the water plane (no structure near the clicks); null: as given")
+    sigma_m: float | None = Field(None, description="1-σ of the line across itself")
+    sigma_deg: float | None = Field(None, description="1-σ of its direction")
+    support_points: int = Field(0, description="structure points the line is fitted to")
+    note: str = Field("", description="what the officer should know about the line")
     t: float | None
-    bow_distance_m: float | None
-    stern_distance_m: float | None
-    bow_approach_mps: float | None = Field(description="positive when closing")
-    stern_approach_mps: float | None
+
+
+class ApproachLimitRow(Strict):
+    within_m: Annotated[float, Field(gt=0.0, le=MAX_BERTH_DISTANCE_M)] = Field(
+        description="the row applies at distances below this (the nearest row that does)")
+    warning_cms: Annotated[float, Field(gt=0.0, le=500.0)] = Field(
+        description="amber above this closing speed (cm/s)")
+    alarm_cms: Annotated[float, Field(gt=0.0, le=500.0)] = Field(
+        description="red, sounding, above this closing speed (cm/s)")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> ApproachLimitRow:
+        if self.warning_cms > self.alarm_cms:
+            raise ValueError("warning_cms must not exceed alarm_cms")
+        return self
+
+
+class ApproachLimits(Strict):
+    """Approach-speed limits of the bow and stern by distance to the berth line."""
+
+    rows: Annotated[list[ApproachLimitRow], Field(min_length=0, max_length=12)]
+
+    @model_validator(mode="after")
+    def _distinct(self) -> ApproachLimits:
+        within = [r.within_m for r in self.rows]
+        if len(set(within)) != len(within):
+            raise ValueError("two rows with the same within_m")
+        return self
 
 
 # --------------------------------------------------------------------------------- report
@@ -470,8 +556,14 @@ class VideoGrid(BaseModel):
 
 class VideoPoints(BaseModel):
     uv: list[Vec2]
-    distance_m: list[float]
-    color: list[str] = Field(description="'#rrggbb', hue by distance (red near, blue far)")
+    distance_m: list[float] = Field(description="from the camera")
+    hull_distance_m: list[float] = Field(description="from the hull outline, in plan")
+    band: list[int] = Field(description="index of the distance band (distance_bands_m) of "
+                                        "hull_distance_m")
+    color: list[str] = Field(description="'#rrggbb', the band's day colour")
+    converged: list[bool]
+    obstacle: list[bool] = Field(description="converged, above the water plane, near the ship "
+                                             "or the berth line: drawn by default")
     id: list[int]
 
 
@@ -481,6 +573,7 @@ class VideoOutline(BaseModel):
 
 
 class VideoOverlay(BaseModel):
+    hull: list[list[Vec2]] = Field(description="the current hull outline at the water line")
     grid: VideoGrid
     points: VideoPoints
     prediction: list[VideoOutline]
@@ -489,6 +582,9 @@ class VideoOverlay(BaseModel):
 class PlanPoints(BaseModel):
     ne: list[Vec2]
     color: list[str]
+    band: list[int]
+    converged: list[bool]
+    obstacle: list[bool]
 
 
 class PlanTarget(BaseModel):
@@ -517,14 +613,13 @@ class TargetReadout(BaseModel):
     hull_distance_m: float
 
 
-class BerthReadout(BaseModel):
-    bow_distance_m: float | None
-    stern_distance_m: float | None
-    bow_approach_mps: float | None
-    stern_approach_mps: float | None
+class BerthReadout(BerthGeometry):
     polylines: list[list[Vec2]]
-    source: Literal["recording", "ned", "image"] | None = Field(
-        None, description="where the line came from")
+    source: BerthSource | None = Field(None, description="where the line came from")
+    method: BerthMethod | None = None
+    sigma_m: float | None = None
+    support_points: int = 0
+    note: str = ""
 
 
 class Overlay(BaseModel):
@@ -532,13 +627,17 @@ class Overlay(BaseModel):
     birdseye: BirdsEye
     targets: list[TargetReadout]
     berth: BerthReadout | None
-    color_range_m: float = Field(description="distance drawn blue (red at 0)")
+    distance_bands_m: list[float] = Field(
+        description="upper ends of the fixed distance bands of the points (the last band is "
+                    "beyond the last of these)")
 
 
 class ReplayBrief(BaseModel):
     state: str
     speed: float | None
     lag_s: float
+    behind_s: float = Field(0.0, description="recording seconds the replay fell behind real "
+                                             "time since it last started playing")
 
 
 class StreamFrameHeader(BaseModel):

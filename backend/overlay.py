@@ -23,7 +23,14 @@ from estimator.landmarks import converged
 from estimator.prediction import predict_outlines
 from estimator.records import CameraCalibration, Hull
 
-from .geometry import berth_metrics, hue_color, hull_outline_ne
+from .geometry import (
+    BAND_COLORS,
+    DISTANCE_BANDS_M,
+    berth_metrics,
+    distance_band,
+    hull_outline_ne,
+    polygon_distances,
+)
 
 GRID_CELL_M = 2.0
 MAX_OVERLAY_POINTS = 1500  # nearest visible structure points drawn on the video
@@ -36,7 +43,6 @@ class OverlayConfig:
     prediction_seconds: int = 5
     grid_cell_m: float = GRID_CELL_M
     grid_radius_m: float | None = None  # None: from the camera height (see grid_radius)
-    color_range_m: float | None = None  # distance shown blue; None: twice the grid radius
     water_down_m: float = 0.0  # the water plane (down coordinate) in the engine's frame
 
 
@@ -48,6 +54,12 @@ class TargetInput:
 
 
 PLAN_RANGE_FACTOR = 4.0  # plan points out to this many grid radii (small boat: 120 m)
+NEAR_BERTH_M = 6.0  # points this near the berth line are "near the berth"
+ABOVE_WATER_M = 0.15  # a point less than this above the water plane is no obstacle
+QUAY_MAX_HEIGHT_M = 6.0  # points up to this above the water hide the water behind them
+OCCLUSION_BIN_DEG = 1.0
+FRONT_GAP_BINS = 8  # directions without structure between two with it: bridged up to this
+GRID_PIECE_M = 0.5  # grid lines are cut where they pass behind the quay to this resolution
 
 
 def grid_radius(camera_height_m: float) -> float:
@@ -147,11 +159,17 @@ def grid_nodes(center_ne: np.ndarray, radius: float, cell: float, down: float = 
 
 
 def _grid(projector: Projector, pose: CameraPose, center_ne: np.ndarray, radius: float,
-          cell: float, down: float) -> dict[str, Any]:
+          cell: float, down: float, keep: Any = None) -> dict[str, Any]:
+    """The water grid; ``keep`` (plan points (N,2) → mask) cuts it where the water is hidden
+    (behind the quay face) — grid nodes are kept only where it is visible too."""
     a, b = grid_lines(center_ne, radius, cell, down)
+    if keep is not None:
+        a, b = clip_segments(a, b, keep)
     lines = projector.project_segments(pose, a, b)
     nodes = grid_nodes(center_ne, radius, cell, down)
     visible, uv = projector.project_points(pose, nodes)
+    if keep is not None and len(nodes):
+        visible &= keep(nodes[:, :2])
     idx = np.flatnonzero(visible)
     if len(idx) > MAX_GRID_NODES:  # keep the nearest: those matter for berthing
         d = np.linalg.norm(nodes[idx] - pose.position_ned, axis=1)
@@ -163,6 +181,85 @@ def _grid(projector: Projector, pose: CameraPose, center_ne: np.ndarray, radius:
         "lines": [_round(line, 1) for line in lines],
         "nodes": {"ned": nodes[idx].tolist(), "uv": uv[idx].tolist()},
     }
+
+
+def _front_ranges(rel_ne: np.ndarray, bins: int) -> np.ndarray:
+    """Per direction bin, the plan range of the nearest surface: the second-nearest point
+    within a bin of it (one stray point does not make a surface), gaps of up to
+    FRONT_GAP_BINS between surfaces bridged (the points of a quay face are sparse); inf where
+    there is none."""
+    front = np.full(bins, np.inf)
+    if len(rel_ne) < 2:
+        return front
+    k0 = (np.degrees(np.arctan2(rel_ne[:, 1], rel_ne[:, 0])) // OCCLUSION_BIN_DEG).astype(int)
+    r0 = np.linalg.norm(rel_ne, axis=1)
+    k = np.concatenate([(k0 + j) % bins for j in (-1, 0, 1)])
+    r = np.tile(r0, 3)
+    order = np.lexsort((r, k))
+    k, r = k[order], r[order]
+    first = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    second = np.minimum(first + 1, len(k) - 1)
+    has = (first + 1 < len(k)) & (k[second] == k[first])
+    front[k[first[has]]] = r[second[has]]
+    # bridge short gaps (on three turns, so that a gap across ±180° is bridged too)
+    tiled = np.tile(front, 3)
+    idx = np.flatnonzero(np.isfinite(tiled))
+    if len(idx) >= 2:
+        gaps = np.flatnonzero(np.diff(idx) <= FRONT_GAP_BINS + 1)
+        for g in gaps:
+            i, j = idx[g], idx[g + 1]
+            tiled[i + 1:j] = np.interp(np.arange(i + 1, j), [i, j], [tiled[i], tiled[j]])
+    return tiled[bins:2 * bins]
+
+
+def clip_segments(a: np.ndarray, b: np.ndarray, keep: Any, piece: float = GRID_PIECE_M
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The parts of segments a→b (N,3) whose points ``keep`` (plan (M,2) → mask) accepts,
+    to ``piece`` metres."""
+    out_a, out_b = [], []
+    for p, q in zip(a, b, strict=True):
+        n = max(1, int(np.ceil(np.linalg.norm(q[:2] - p[:2]) / piece)))
+        s = np.linspace(0.0, 1.0, n + 1)
+        mids = p + ((s[:-1] + s[1:]) / 2)[:, None] * (q - p)
+        ok = np.concatenate([[False], keep(mids[:, :2]), [False]])
+        starts = np.flatnonzero(~ok[:-1] & ok[1:])
+        ends = np.flatnonzero(ok[:-1] & ~ok[1:])
+        for i, j in zip(starts, ends, strict=True):
+            out_a.append(p + s[i] * (q - p))
+            out_b.append(p + s[j] * (q - p))
+    if not out_a:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.array(out_a), np.array(out_b)
+
+
+def water_visibility(camera_ned: np.ndarray, points: np.ndarray, water_down: float,
+                     berth_line_ne: np.ndarray | None) -> Any:
+    """Plan points (M,2) → mask of those whose water is visible: on the ship's side of the
+    berth line, and in front of the reconstructed quay: per direction from the camera
+    (``_front_ranges``), the structure standing on the water (points up to QUAY_MAX_HEIGHT_M
+    above it) hides the water behind it."""
+    cam = np.asarray(camera_ned, dtype=float)[:2]
+    height = water_down - np.asarray(points, dtype=float).reshape(-1, 3)[:, 2]
+    wall = points[(height > ABOVE_WATER_M) & (height < QUAY_MAX_HEIGHT_M)] if len(points) \
+        else np.zeros((0, 3))
+    bins = int(round(360.0 / OCCLUSION_BIN_DEG))
+    front = _front_ranges(wall[:, :2] - cam, bins)
+    normal = side = None
+    if berth_line_ne is not None:
+        line = np.asarray(berth_line_ne, dtype=float).reshape(2, 2)
+        d = line[1] - line[0]
+        normal = np.array([-d[1], d[0]]) / max(float(np.linalg.norm(d)), 1e-9)
+        side = np.sign(float(np.dot(cam - line[0], normal))) or 1.0
+
+    def keep(ne: np.ndarray) -> np.ndarray:
+        rel = np.asarray(ne, dtype=float) - cam
+        k = (np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) // OCCLUSION_BIN_DEG).astype(int) % bins
+        ok = np.linalg.norm(rel, axis=1) < front[k]
+        if normal is not None:
+            ok &= (np.asarray(ne, dtype=float) - line[0]) @ normal * side > 0.0
+        return ok
+
+    return keep
 
 
 # ------------------------------------------------------------------------------ overlay
@@ -182,70 +279,104 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
                   structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
                   targets: Sequence[TargetInput] = (),
                   berth_line_ne: np.ndarray | None = None,
-                  config: OverlayConfig | None = None) -> dict[str, Any]:
+                  config: OverlayConfig | None = None,
+                  berth_sigma: tuple[float | None, float | None] = (None, None)
+                  ) -> dict[str, Any]:
     """Overlay of one frame: ``video`` (image pixels), ``birdseye`` (plan) and ``targets`` /
-    ``berth`` read-outs, all for the pose of ``state``."""
+    ``berth`` read-outs, all for the pose of ``state``. ``berth_sigma``: the berth line's σ
+    (m across it, deg of its direction)."""
     config = config or OverlayConfig()
     pose = camera_pose(state, camera)
     ship_ne = np.asarray(state.position_ned, dtype=float)[:2]
     water = float(config.water_down_m)
     height = max(water - float(pose.position_ned[2]), 0.5)  # camera above the water
     radius = config.grid_radius_m or grid_radius(height)
-    color_range = config.color_range_m or 2.0 * radius
-
-    video: dict[str, Any] = {"grid": _grid(projector, pose, ship_ne, radius, config.grid_cell_m,
-                                           water)}
+    pts, sigma, ids = _structure_arrays(structure)
+    keep = water_visibility(pose.position_ned, pts[converged(sigma, np.linalg.norm(
+        pts - pose.position_ned, axis=1))], water, berth_line_ne)
+    hull_ne = hull_outline_ne(state, hull)
+    video: dict[str, Any] = {
+        "grid": _grid(projector, pose, ship_ne, radius, config.grid_cell_m, water, keep),
+        "hull": [_round(line, 1) for line in projector.project_polygon(
+            pose, np.column_stack([hull_ne, np.full(len(hull_ne), water)]))],
+    }
     plan: dict[str, Any] = {
         "position": _round(ship_ne, 3),
         "heading_deg": round(float(np.degrees(wrap_angle(state.euler[2]))), 3),
-        "ship": _round(hull_outline_ne(state, hull), 3),
+        "ship": _round(hull_ne, 3),
         "frustum": _plan_frustum(projector, pose, radius),
         "radius_m": radius,
     }
 
-    _structure_points(video, plan, projector, pose, structure, ship_ne, radius, color_range)
+    _structure_points(video, plan, projector, pose, (pts, sigma, ids), hull_ne, radius, water,
+                      berth_line_ne)
     _predictions(video, plan, projector, pose, state, hull, config.prediction_seconds, water)
     target_out = _targets(plan, projector, pose, state, hull, targets)
-    berth = _berth(plan, projector, pose, state, hull, berth_line_ne, water)
+    berth = _berth(plan, projector, pose, state, hull, berth_line_ne, water, berth_sigma)
     return {"video": video, "birdseye": plan, "targets": target_out, "berth": berth,
-            "color_range_m": color_range}
+            "distance_bands_m": list(DISTANCE_BANDS_M)}
+
+
+def _structure_arrays(structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (N,3), σ (N,), ids (N,)) with the non-finite points left out."""
+    if structure is None or not len(structure[0]):
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int)
+    pts = np.asarray(structure[0], dtype=float).reshape(-1, 3)
+    sigma = np.asarray(structure[1], dtype=float).reshape(-1)
+    ids = np.asarray(structure[2])
+    finite = np.isfinite(pts).all(axis=1) & np.isfinite(sigma)
+    return pts[finite], sigma[finite], ids[finite]
 
 
 def _structure_points(video: dict[str, Any], plan: dict[str, Any], projector: Projector,
-                      pose: CameraPose,
-                      structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
-                      ship_ne: np.ndarray, radius: float, color_range: float) -> None:
-    """Port structure: visible points on the video, nearby points in plan, same colours."""
-    pts = np.zeros((0, 3))
-    sigma = np.zeros(0)
-    ids = np.zeros(0, dtype=int)
-    if structure is not None and len(structure[0]):
-        pts = np.asarray(structure[0], dtype=float).reshape(-1, 3)
-        sigma = np.asarray(structure[1], dtype=float).reshape(-1)
-        ids = np.asarray(structure[2])
-        finite = np.isfinite(pts).all(axis=1)
-        pts, sigma, ids = pts[finite], sigma[finite], ids[finite]
+                      pose: CameraPose, structure: tuple[np.ndarray, np.ndarray, np.ndarray],
+                      hull_ne: np.ndarray, radius: float, water: float,
+                      berth_line_ne: np.ndarray | None) -> None:
+    """Port structure: visible points on the video, nearby points in plan, coloured by the
+    fixed band of their distance from the hull. ``obstacle`` marks what is drawn by default:
+    converged, above the water plane (at or below it: reflections and noise, not something to
+    hit) and near the ship or the berth line."""
+    pts, sigma, ids = structure
     dist = np.linalg.norm(pts - pose.position_ned, axis=1)
-    # Points still converging (σ beyond a few % of the range) are drawn hollow: their
-    # distance is not to be trusted yet.
+    # Points still converging (σ beyond a few % of the range): their distance is not to be
+    # trusted yet.
     trusted = converged(sigma, dist)
+    hull_dist = polygon_distances(pts[:, :2], hull_ne) if len(pts) else np.zeros(0)
+    near = hull_dist <= radius
+    if berth_line_ne is not None and len(pts):
+        near |= _segment_distance(pts[:, :2], berth_line_ne) <= NEAR_BERTH_M
+    obstacle = trusted & (pts[:, 2] < water - ABOVE_WATER_M) & near
+    band = distance_band(hull_dist)
+    colors = np.array(BAND_COLORS)[band] if len(pts) else np.zeros(0, dtype=str)
     visible, uv = projector.project_points(pose, pts)
     vis = np.flatnonzero(visible)
     vis = vis[np.argsort(dist[vis])[:MAX_OVERLAY_POINTS]]
     video["points"] = {
         "uv": _round(uv[vis], 1),
         "distance_m": _round(dist[vis], 2),
-        "color": hue_color(dist[vis], color_range),
+        "hull_distance_m": _round(hull_dist[vis], 2),
+        "band": band[vis].tolist(),
+        "color": colors[vis].tolist(),
         "converged": trusted[vis].tolist(),
+        "obstacle": obstacle[vis].tolist(),
         "id": ids[vis].tolist(),
     }
     # The plan reaches further than the water grid: the quay must show during the approach.
-    horizontal = np.linalg.norm(pts[:, :2] - ship_ne, axis=1)
-    near = np.flatnonzero(horizontal <= PLAN_RANGE_FACTOR * radius)
-    near = near[np.argsort(horizontal[near])[:MAX_PLAN_POINTS]]
-    plan["points"] = {"ne": _round(pts[near, :2], 2), "color": hue_color(dist[near],
-                                                                         color_range),
-                      "converged": trusted[near].tolist()}
+    horizontal = np.linalg.norm(pts[:, :2] - pose.position_ned[:2], axis=1)
+    near_plan = np.flatnonzero(horizontal <= PLAN_RANGE_FACTOR * radius)
+    near_plan = near_plan[np.argsort(horizontal[near_plan])[:MAX_PLAN_POINTS]]
+    plan["points"] = {"ne": _round(pts[near_plan, :2], 2), "color": colors[near_plan].tolist(),
+                      "band": band[near_plan].tolist(),
+                      "converged": trusted[near_plan].tolist(),
+                      "obstacle": obstacle[near_plan].tolist()}
+
+
+def _segment_distance(points: np.ndarray, segment: np.ndarray) -> np.ndarray:
+    a, b = np.asarray(segment, dtype=float).reshape(2, 2)
+    ab = b - a
+    s = np.clip((points - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(points - (a + s[:, None] * ab), axis=1)
 
 
 def _predictions(video: dict[str, Any], plan: dict[str, Any], projector: Projector,
@@ -279,16 +410,17 @@ def _targets(plan: dict[str, Any], projector: Projector, pose: CameraPose, state
 
 
 def _berth(plan: dict[str, Any], projector: Projector, pose: CameraPose, state: Any,
-           hull: Hull, berth_line_ne: np.ndarray | None, water: float
-           ) -> dict[str, Any] | None:
-    """Berth line drawn on the water plane, bow/stern distance and approach speed."""
+           hull: Hull, berth_line_ne: np.ndarray | None, water: float,
+           sigma: tuple[float | None, float | None]) -> dict[str, Any] | None:
+    """Berth line drawn at the foot of the quay (on the water plane) and the berth
+    geometry."""
     plan["berth_line"] = None
     if berth_line_ne is None:
         return None
     line = np.asarray(berth_line_ne, dtype=float).reshape(2, 2)
     line3 = np.column_stack([line, np.full(2, water)])
     berth: dict[str, Any] = {key: (None if val is None else round(val, 3))
-                             for key, val in berth_metrics(state, hull, line).items()}
+                             for key, val in berth_metrics(state, hull, line, *sigma).items()}
     berth["polylines"] = [_round(p, 1) for p in projector.project_segments(
         pose, line3[:1], line3[1:])]
     plan["berth_line"] = _round(line, 3)

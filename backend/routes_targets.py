@@ -1,4 +1,5 @@
-"""Routes of a session's designated ``targets`` and its ``berth-line``."""
+"""Routes of a session's designated ``targets``, its ``berth-line`` and the approach-speed
+limits of its berthing alarms."""
 
 from __future__ import annotations
 
@@ -7,10 +8,14 @@ from typing import Literal
 from fastapi import APIRouter, Response, status
 from pydantic import BaseModel, Field
 
+from .alarms import ApproachLimit
 from .deps import SessionDep, errors
 from .models import (
+    ApproachLimitRow,
+    ApproachLimits,
     BerthLineRequest,
     BerthLineStatus,
+    BerthNudge,
     TargetCreate,
     Vec2,
 )
@@ -135,14 +140,28 @@ def _berth_status(session: Session) -> BerthLineStatus:
 @router.put("/berth-line", response_model=BerthLineStatus, responses=errors(400, 404, 409),
             summary="Set the berth line")
 def put_berth_line(body: BerthLineRequest, session: SessionDep) -> BerthLineStatus:
-    """From two (north, east) points, or from two pixels on the quay's water line of a frame
-    (their rays meet the water plane). Answers the bow and stern distance to the line and
-    their approach speeds (positive closing) at the current pose."""
+    """From two clicks on the quay in a frame (``image_points``: fitted to the quay face's
+    converged port-structure points, else on the water plane — ``method`` and ``note`` say
+    which), two (north, east) points (``ned``, fitted to the quay face near them with
+    ``snap``), or typed in from the bow (``from_bow``). Answers the berth geometry at the
+    current pose: bow and stern distance and approach speed (positive closing), speed along
+    the berth, angle to it, time to contact, with σ."""
     if body.ned is not None:
-        session.set_berth_line_ned(body.ned)
+        session.set_berth_line_ned(body.ned, snap=bool(body.snap))
+    elif body.from_bow is not None:
+        session.set_berth_line_from_bow(body.from_bow.distance_m, body.from_bow.bearing_deg)
     else:
         frame_t = None if body.frame_time == "current" else float(body.frame_time)
         session.set_berth_line_image(frame_t, body.image_points)
+    return _berth_status(session)
+
+
+@router.post("/berth-line/nudge", response_model=BerthLineStatus,
+             responses=errors(400, 404, 409), summary="Nudge the berth line")
+def nudge_berth_line(body: BerthNudge, session: SessionDep) -> BerthLineStatus:
+    """Move the line ``offset_m`` away from the ship (negative: towards it) and turn it
+    ``rotate_deg`` about its middle; 422 when there is no line."""
+    session.nudge_berth_line(body.offset_m, body.rotate_deg)
     return _berth_status(session)
 
 
@@ -159,3 +178,29 @@ def delete_berth_line(session: SessionDep) -> Response:
     session.clear_berth_line()
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
+
+
+def _limits(session: Session) -> ApproachLimits:
+    return ApproachLimits(rows=[ApproachLimitRow(within_m=r.within_m,
+                                                 warning_cms=round(100 * r.warning_mps, 3),
+                                                 alarm_cms=round(100 * r.alarm_mps, 3))
+                                for r in session.alarms.approach_limits])
+
+
+@router.get("/approach-limits", response_model=ApproachLimits, responses=errors(404),
+            summary="Approach-speed alarm limits by distance")
+def get_approach_limits(session: SessionDep) -> ApproachLimits:
+    """The bow's and stern's closing speed raises an amber (``warning``) alarm above the
+    row's ``warning_cms`` and a red sounding one (``alarm``) above its ``alarm_cms``; the row
+    is the nearest whose ``within_m`` exceeds the distance to the berth line (none beyond the
+    last row)."""
+    return _limits(session)
+
+
+@router.put("/approach-limits", response_model=ApproachLimits, responses=errors(400, 404),
+            summary="Set the approach-speed alarm limits")
+def put_approach_limits(body: ApproachLimits, session: SessionDep) -> ApproachLimits:
+    session.alarms.set_approach_limits([ApproachLimit(r.within_m, r.warning_cms / 100.0,
+                                                      r.alarm_cms / 100.0) for r in body.rows])
+    session.redraw_if_paused()
+    return _limits(session)

@@ -27,7 +27,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from engine.camera import Projector
+from engine.camera import Projector, camera_pose
 from engine.driver import EngineFactory, FusionEngine
 from engine.targets import Structure
 from estimator.integrity import IntegrityConfig
@@ -102,7 +102,7 @@ class Session:
         self.history = History(rec, self.lock)
         self.start_gpst, self.end_gpst = self.history.start_gpst, self.history.end_gpst
         self.targets = TargetBook(rec, self.projector, self.lock)
-        self.berth = Berth(rec, self.projector, self.water.down_m,
+        self.berth = Berth(rec, self.projector, self.water.down_m if self.water.known else None,
                            self.history.origin_in_recording, self.lock)
         self.alarms = AlarmBook(self.start_gpst)
         self._structure = Structure(None)
@@ -167,7 +167,7 @@ class Session:
             self._frames.append((result.index, result.t, result.image))
             if state is not None:
                 self.history.append(result.t, state)
-                self.alarms.update(state, alerts)
+                self.alarms.update(state, alerts, self.berth.metrics(state))
                 self.targets.on_frame(state, result.index, result.image, self._structure)
             watched = bool(self._subscribers)
             listeners = list(self.frame_listeners)
@@ -247,7 +247,7 @@ class Session:
             structure = (s.points, s.sigma, s.ids)
             targets = self.targets.inputs()
             berth = self.berth.world(state)
-            berth_source = None if self.berth.line is None else self.berth.line.source
+            berth_line = self.berth.line
             replay = self.replayer.status()
         header: dict[str, Any] = {
             "type": "frame",
@@ -259,7 +259,8 @@ class Session:
             "height": self.projector.height,
             "jpeg_bytes": len(jpeg),
             "replay": {"state": replay["state"], "speed": replay["speed"],
-                       "lag_s": round(replay["lag_s"], 3)},
+                       "lag_s": round(replay["lag_s"], 3),
+                       "behind_s": round(replay["behind_s"], 3)},
             "processed_at": result.processed_wall,
             "alarms": self.alarms.active(),
         }
@@ -268,11 +269,17 @@ class Session:
         else:
             header["pose"] = pose_dict(state, self.start_gpst)
             header["status"] = status_dict(state.status)
-            header["overlay"] = build_overlay(state, self.rec.calibration.camera, self.rec.hull,
-                                              self.projector, structure, targets, berth,
-                                              self.overlay_config)
-            if header["overlay"]["berth"] is not None:
-                header["overlay"]["berth"]["source"] = berth_source
+            header["overlay"] = build_overlay(
+                state, self.rec.calibration.camera, self.rec.hull, self.projector, structure,
+                targets, berth, self.overlay_config,
+                (None, None) if berth_line is None else (berth_line.sigma_m,
+                                                         berth_line.sigma_deg))
+            readout = header["overlay"]["berth"]
+            if readout is not None and berth_line is not None:
+                readout.update(source=berth_line.source, method=berth_line.method,
+                               sigma_m=None if berth_line.sigma_m is None else round(
+                                   berth_line.sigma_m, 3),
+                               support_points=berth_line.support, note=berth_line.note)
             with self.lock:
                 self.targets.readouts(header["overlay"]["targets"])
         text = json.dumps(header, separators=(",", ":"), allow_nan=False)
@@ -405,20 +412,32 @@ class Session:
 
     # -------------------------------------------------------------------- berth line
 
-    def set_berth_line_ned(self, line_ne: np.ndarray) -> None:
-        self.berth.set_ned(line_ne)
+    def set_berth_line_ned(self, line_ne: np.ndarray, snap: bool = False) -> None:
+        """Two plan points; with ``snap`` fitted to the quay face's points near them."""
+        state = self.history.latest()
+        camera = None if state is None else camera_pose(state, self.rec.calibration.camera)
+        self.berth.set_ned(line_ne, snap, self.structure(),
+                           None if camera is None else camera.position_ned)
         self.redraw_if_paused()
 
     def set_berth_line_image(self, frame_t: float | None, points_uv: np.ndarray) -> None:
-        """Berth line from two pixels on the quay's water line (rays meet the water plane)."""
+        """Berth line from two clicks on the quay of a frame (``berth.Berth.set_image``)."""
         state = self.current_state() if frame_t is None else self.history.frame_state(frame_t)
-        self.berth.set_image(state, points_uv)
+        self.berth.set_image(state, points_uv, self.structure())
+        self.redraw_if_paused()
+
+    def set_berth_line_from_bow(self, distance_m: float, bearing_deg: float) -> None:
+        self.berth.set_from_bow(self.current_state(), distance_m, bearing_deg)
+        self.redraw_if_paused()
+
+    def nudge_berth_line(self, offset_m: float, rotate_deg: float) -> None:
+        self.berth.nudge(self.history.latest(), offset_m, rotate_deg)
         self.redraw_if_paused()
 
     def berth_status(self) -> dict[str, Any]:
         if self.berth.line is None:
-            raise NotFound("this session has no berth line: PUT one (from two plan points or "
-                           "two pixels on the quay's water line)")
+            raise NotFound("this session has no berth line: PUT one (from two clicks on the "
+                           "quay in a frame, two plan points, or typed in from the bow)")
         return self.berth.status(self.history.latest(), self.start_gpst)
 
     def clear_berth_line(self) -> None:

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from backend.geometry import berth_metrics, hue_color
+from backend.geometry import BAND_COLORS, berth_metrics, distance_band, polygon_distances
 from backend.overlay import OverlayConfig, build_overlay, polygon_distance
 from engine.camera import Projector, camera_pose, water_plane_point
 from estimator.frames import camera_to_body, euler_to_dcm
@@ -119,19 +119,73 @@ def test_segments_behind_the_camera_are_clipped_at_the_near_plane():
 def test_points_colour_and_visibility():
     state = make_state()
     projector = Projector(CAMERA)
-    pts = np.array([[13.0, 0.0, -1.0], [25.0, 2.0, -3.0], [-20.0, 0.0, 0.0]])  # ahead, behind
-    sigma = np.array([0.2, 3.0, 0.2])  # the second one still converging (σ 14 % of range)
-    overlay = build_overlay(state, CAMERA, HULL, projector, (pts, sigma, np.arange(3)),
-                            config=OverlayConfig(water_down_m=WATER, color_range_m=40.0))
+    # ahead (converged), ahead (still converging: σ 14 % of range), behind, ahead on the water
+    pts = np.array([[13.0, 0.0, -1.0], [25.0, 2.0, -3.0], [-20.0, 0.0, 0.0], [9.0, 1.0, 0.62]])
+    sigma = np.array([0.2, 3.0, 0.2, 0.1])
+    overlay = build_overlay(state, CAMERA, HULL, projector, (pts, sigma, np.arange(4)),
+                            config=OverlayConfig(water_down_m=WATER, grid_radius_m=20.0))
     points = overlay["video"]["points"]
-    assert points["id"] == [0, 1]
-    assert points["converged"] == [True, False]
-    assert overlay["birdseye"]["points"]["converged"] == [True, True, False]  # nearest first
-    assert points["distance_m"][0] == pytest.approx(np.linalg.norm(pts[0] - [3.0, 0, -0.4]),
+    assert points["id"] == [3, 0, 1]  # visible, nearest first
+    assert points["converged"] == [True, True, False]
+    # drawn by default: converged, above the water and near the ship (within 20 m here)
+    assert points["obstacle"] == [False, True, False]
+    # plan, nearest the camera first: water, ahead, converging, behind (16.5 m from the stern)
+    assert overlay["birdseye"]["points"]["obstacle"] == [False, True, False, True]
+    assert points["distance_m"][1] == pytest.approx(np.linalg.norm(pts[0] - [3.0, 0, -0.4]),
                                                     abs=0.01)
-    assert points["color"][0] == hue_color([10.0], 40.0)[0]
-    assert hue_color([0.0, 40.0, 99.0], 40.0) == ["#ff0000", "#0000ff", "#0000ff"]
-    assert len(overlay["birdseye"]["points"]["ne"]) == 3  # plan shows behind the camera too
+    # coloured by the fixed band of the distance from the hull (bow at 3.5 m: 9.5 m → 5-10 m)
+    assert points["hull_distance_m"][1] == pytest.approx(9.5, abs=0.01)
+    assert points["band"][1] == 2 and points["color"][1] == BAND_COLORS[2]
+    assert overlay["distance_bands_m"] == [2.0, 5.0, 10.0, 20.0, 50.0, 100.0]
+    assert distance_band([0.0, 1.99, 2.0, 49.0, 100.0, 1e4]).tolist() == [0, 0, 1, 4, 6, 6]
+    assert len(overlay["birdseye"]["points"]["ne"]) == 4  # plan shows behind the camera too
+    assert overlay["video"]["hull"] == []  # the bow is below the field of view here
+    # from a camera at the stern the current hull outline shows at the water line
+    aft = CameraCalibration(960, 600, K, DIST, CAMERA.C_camera_to_body, np.array([-3.4, 0, -0.4]))
+    hull = build_overlay(state, aft, HULL, Projector(aft),
+                         config=OverlayConfig(water_down_m=WATER))["video"]["hull"]
+    bow = Projector(aft).project_points(camera_pose(state, aft), np.array([[3.5, 0.0, WATER]]))
+    assert bow[0][0] and min(np.hypot(*(np.array(p) - bow[1][0])) for line in hull
+                             for p in line) < 1.0
+
+
+def test_polygon_distances_match_the_single_point_form():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-8, 8, (200, 2))
+    got = polygon_distances(pts, HULL.outline_body)
+    want = [polygon_distance(p, HULL.outline_body) for p in pts]
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    assert (got == 0).sum() > 5  # some inside
+
+
+def _quay_wall(north: float, east: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    """Points on a vertical quay face at ``north`` (down = WATER - height)."""
+    e, h = np.meshgrid(east, heights)
+    return np.column_stack([np.full(e.size, north), e.ravel(), WATER - h.ravel()])
+
+
+def test_water_grid_stops_at_the_quay_face():
+    state = make_state()  # camera at north 3 m, looking north
+    projector = Projector(CAMERA)
+    wall = _quay_wall(15.0, np.arange(-20.0, 20.1, 0.5), np.array([0.3, 0.8, 1.3]))
+    overlay = build_overlay(state, CAMERA, HULL, projector,
+                            (wall, np.full(len(wall), 0.05), np.arange(len(wall))),
+                            config=OverlayConfig(water_down_m=WATER))
+    nodes = np.array(overlay["video"]["grid"]["nodes"]["ned"])
+    assert len(nodes) > 20 and nodes[:, 0].max() < 15.0  # no node behind the wall
+    pose = camera_pose(state, CAMERA)
+    for line in overlay["video"]["grid"]["lines"]:
+        for u, v in line:  # every drawn grid pixel is water in front of the wall
+            hit = water_plane_point(pose.position_ned, projector.pixel_ray(pose, u, v), WATER)
+            assert hit is not None and hit[0] < 15.0 + 0.6, (u, v, hit)
+    # without the wall the grid runs on beyond it
+    bare = build_overlay(state, CAMERA, HULL, projector, config=OverlayConfig(water_down_m=WATER))
+    assert np.array(bare["video"]["grid"]["nodes"]["ned"])[:, 0].max() > 20.0
+    # a berth line cuts it too
+    line = np.array([[10.0, -30.0], [10.0, 30.0]])
+    cut = build_overlay(state, CAMERA, HULL, projector, berth_line_ne=line,
+                        config=OverlayConfig(water_down_m=WATER))
+    assert np.array(cut["video"]["grid"]["nodes"]["ned"])[:, 0].max() < 10.0
 
 
 # ------------------------------------------------------------------------------ berth line
@@ -142,14 +196,43 @@ def test_berth_metrics_bow_stern_distance_and_approach_speed():
     # heading east, 6 m south of the line, moving north (towards it) at 0.2 m/s, no turn
     state = make_state((-6.0, 0.0, 0.0), (0.0, 0.0, np.pi / 2), (0.2, 0.0, 0.0))
     m = berth_metrics(state, HULL, line)
-    assert m["bow_distance_m"] == pytest.approx(6.0 - 1.25, abs=1e-6)  # port side faces it
-    assert m["stern_distance_m"] == pytest.approx(6.0 - 1.25, abs=1e-6)
+    # from the foremost point (the stem, on the centreline) and the aftmost one (the transom's
+    # port corner faces the quay)
+    assert m["bow_distance_m"] == pytest.approx(6.0, abs=1e-9)
+    assert m["stern_distance_m"] == pytest.approx(6.0 - 1.25, abs=1e-9)
+    assert m["nearest_distance_m"] == pytest.approx(6.0 - 1.25, abs=1e-9)
     assert m["bow_approach_mps"] == pytest.approx(0.2)
     assert m["stern_approach_mps"] == pytest.approx(0.2)
+    assert m["along_berth_mps"] == pytest.approx(0.0, abs=1e-12)
+    assert m["angle_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert m["time_to_contact_s"] == pytest.approx((6.0 - 1.25) / 0.2)
+    # σ: the position's across the line (1 cm), the heading's (1 mrad) through the stem's
+    # 3.5 m lever, and the line's own
+    assert m["bow_distance_sigma_m"] == pytest.approx(np.hypot(0.01, 0.0035), abs=1e-6)
+    m = berth_metrics(state, HULL, line, line_sigma_m=0.05)
+    assert m["bow_distance_sigma_m"] == pytest.approx(np.sqrt(0.01**2 + 0.0035**2 + 0.05**2),
+                                                      abs=1e-6)
     # turning to port (negative rate) swings the bow towards the quay, the stern away
     state.rate_of_turn = -0.05
     m = berth_metrics(state, HULL, line)
     assert m["bow_approach_mps"] > 0.2 > m["stern_approach_mps"]
+
+
+def test_berth_metrics_at_an_angle_take_the_ends_not_midships():
+    line = np.array([[0.0, -50.0], [0.0, 50.0]])
+    # bow 30 deg in towards the quay (heading 60 deg), sliding east at 0.3 m/s, opening
+    psi = np.radians(60.0)
+    state = make_state((-10.0, 0.0, 0.0), (0.0, 0.0, psi), (-0.05, 0.3, 0.0))
+    m = berth_metrics(state, HULL, line)
+    assert m["bow_distance_m"] == pytest.approx(10.0 - 3.5 * np.cos(psi), abs=1e-9)
+    # aftmost corners (-3.5, ±1.25): the port one is nearer the quay
+    R = np.array([[np.cos(psi), -np.sin(psi)], [np.sin(psi), np.cos(psi)]])
+    corners = np.array([[-3.5, 1.25], [-3.5, -1.25]]) @ R.T + [-10.0, 0.0]
+    assert m["stern_distance_m"] == pytest.approx(-corners[:, 0].max(), abs=1e-9)
+    assert m["angle_deg"] == pytest.approx(30.0, abs=1e-9)  # positive: bow in
+    assert m["along_berth_mps"] == pytest.approx(0.3)
+    assert m["bow_approach_mps"] == pytest.approx(-0.05)
+    assert m["time_to_contact_s"] is None  # opening: no contact
 
 
 def test_polygon_distance_and_water_plane_point():

@@ -1,0 +1,202 @@
+"""The berth line from clicks on the quay face, typed in and nudged, and the berthing alarms of
+the session's alarm book (backend/berth.py, backend/alarms.py; pure, no server).
+
+A synthetic port: a quay face at north 15 m (points from the water line to the coping), a
+building behind it, a boat moored in front of part of it and reflections below the water; the
+camera 1 m above the water looking north at it."""
+
+from __future__ import annotations
+
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from backend.alarms import AlarmBook, ApproachLimit
+from backend.berth import Berth
+from backend.errors import Unprocessable
+from backend.geometry import berth_metrics
+from engine.camera import Projector, camera_pose
+from engine.targets import Structure
+from tests.test_backend_overlay import CAMERA, HULL, WATER, make_state
+
+QUAY_N = 15.0
+COPING_M = 1.5  # quay top above the water
+
+
+def _port(seed: int = 0) -> Structure:
+    rng = np.random.default_rng(seed)
+    parts = []
+
+    def plane(n, e, h, sigma):
+        e, h = np.meshgrid(e, h)
+        p = np.column_stack([np.full(e.size, n), e.ravel(), WATER - h.ravel()])
+        p += rng.normal(0.0, sigma, p.shape) * [1, 0.2, 0.2]
+        parts.append((p, np.full(len(p), sigma)))
+
+    plane(QUAY_N, np.arange(-25.0, 25.0, 1.3), np.array([0.3, 0.8, 1.3]), 0.05)  # the face
+    plane(QUAY_N + 12.0, np.arange(-30.0, 30.0, 0.8), np.arange(2.0, 12.0, 1.5), 0.3)  # building
+    plane(11.0, np.arange(6.0, 12.0, 0.7), np.array([0.3, 0.7]), 0.05)  # a moored boat
+    plane(9.0, np.arange(-10.0, 10.0, 1.0), np.array([-0.4]), 0.05)  # reflections: under water
+    pts = np.concatenate([p for p, _ in parts])
+    sigma = np.concatenate([s for _, s in parts])
+    return Structure(0.0, pts, sigma, np.arange(len(pts)))
+
+
+def _berth(structure_known: bool = True) -> Berth:
+    rec = SimpleNamespace(hull=SimpleNamespace(outline_body=HULL.outline_body,
+                                               berth_line_ned=None),
+                          calibration=SimpleNamespace(camera=CAMERA))
+    return Berth(rec, Projector(CAMERA), WATER if structure_known else None,
+                 lambda s: np.zeros(3), threading.RLock())
+
+
+def _pixel(state, ned) -> np.ndarray:
+    projector = Projector(CAMERA)
+    visible, uv = projector.project_points(camera_pose(state, CAMERA), np.atleast_2d(ned))
+    assert visible.all(), ned
+    return uv
+
+
+TRUE_BOW = QUAY_N - 3.5  # the stem is 3.5 m ahead of the body origin at north 0
+
+
+@pytest.mark.parametrize("height", [0.0, 0.7, COPING_M])  # water line, wall, coping
+def test_clicks_on_the_quay_give_the_bow_distance_and_a_slip_hardly_moves_it(height):
+    state = make_state()
+    berth = _berth()
+    clicks = _pixel(state, [[QUAY_N, -4.0, WATER - height], [QUAY_N, 5.0, WATER - height]])
+    line = berth.set_image(state, clicks, _port())
+    assert line.method == "quay-face" and line.support >= 20, line
+    bow = berth.status(state, 0.0)["bow_distance_m"]
+    assert bow == pytest.approx(TRUE_BOW, abs=max(0.15, 0.01 * TRUE_BOW))
+    assert 0 < line.sigma_m < 0.1
+    for du, dv in [(3, 0), (-3, 0), (0, 3), (0, -3), (3, -3)]:
+        berth.set_image(state, clicks + [du, dv], _port())
+        slipped = berth.status(state, 0.0)["bow_distance_m"]
+        assert abs(slipped - bow) <= 0.3, (du, dv, slipped, bow)
+        assert abs(slipped - TRUE_BOW) <= max(0.15, 0.01 * TRUE_BOW)
+
+
+def test_the_moored_boat_in_front_is_not_the_quay_unless_clicked():
+    state = make_state()
+    berth = _berth()
+    # both clicks on the quay, one of them beside the boat
+    clicks = _pixel(state, [[QUAY_N, -6.0, WATER], [QUAY_N, 4.0, WATER - 0.5]])
+    berth.set_image(state, clicks, _port())
+    assert berth.status(state, 0.0)["bow_distance_m"] == pytest.approx(TRUE_BOW, abs=0.15)
+
+
+def test_without_structure_the_line_falls_back_to_the_water_plane_and_says_so():
+    state = make_state()
+    berth = _berth()
+    empty = Structure(None)
+    foot = _pixel(state, [[QUAY_N, -4.0, WATER], [QUAY_N, 5.0, WATER]])
+    line = berth.set_image(state, foot, empty)
+    assert line.method == "water-plane" and "water plane" in line.note
+    assert berth.status(state, 0.0)["bow_distance_m"] == pytest.approx(TRUE_BOW, abs=0.05)
+    # a 3 px slip on the water plane moves it by metres: that is why the quay face is used
+    berth.set_image(state, foot + [0, -3], empty)
+    assert berth.status(state, 0.0)["bow_distance_m"] - TRUE_BOW > 0.5
+    # the coping is above the horizon: no water plane there, and no structure
+    coping = _pixel(state, [[QUAY_N, -4.0, WATER - COPING_M], [QUAY_N, 5.0, WATER - COPING_M]])
+    with pytest.raises(Unprocessable, match="above the horizon"):
+        berth.set_image(state, coping, empty)
+    # the quay face is found from the coping once there is structure
+    assert berth.set_image(state, coping, _port()).method == "quay-face"
+
+
+def test_plan_clicks_snap_to_the_quay_face():
+    state = make_state()
+    berth = _berth()
+    line = berth.set_ned(np.array([[QUAY_N - 1.0, -8.0], [QUAY_N + 0.8, 8.0]]), snap=True,
+                         structure=_port(), camera_ned=camera_pose(state, CAMERA).position_ned)
+    assert line.method == "quay-face"
+    np.testing.assert_allclose(line.line_ne[:, 0], QUAY_N, atol=0.1)
+    # nothing there: kept as clicked, with a note
+    line = berth.set_ned(np.array([[40.0, -8.0], [40.0, 8.0]]), snap=True,
+                         structure=_port(), camera_ned=np.zeros(3))
+    assert line.method is None and "as clicked" in line.note
+
+
+def test_typed_in_from_the_bow_and_nudged():
+    psi = np.radians(30.0)
+    state = make_state((5.0, -2.0, 0.0), (0.0, 0.0, psi), (0.1, 0.0, 0.0))
+    berth = _berth()
+    berth.set_from_bow(state, 12.0, -90.0)  # 12 m on the port beam of the bow
+    st = berth.status(state, 0.0)
+    assert st["source"] == "typed"
+    assert st["bow_distance_m"] == pytest.approx(12.0, abs=1e-6)
+    assert st["angle_deg"] == pytest.approx(0.0, abs=1e-6)  # parallel to the centreline
+    berth.nudge(state, 0.5, 0.0)  # half a metre away from the ship
+    assert berth.status(state, 0.0)["bow_distance_m"] == pytest.approx(12.5, abs=1e-6)
+    berth.nudge(state, -1.0, 0.0)
+    assert berth.status(state, 0.0)["bow_distance_m"] == pytest.approx(11.5, abs=1e-6)
+    berth.nudge(state, 0.0, 5.0)
+    assert abs(berth.status(state, 0.0)["angle_deg"]) == pytest.approx(5.0, abs=1e-6)
+    berth.set_from_bow(state, 20.0, 0.0)  # dead ahead, across the bow
+    st = berth.status(state, 0.0)
+    assert st["bow_distance_m"] == pytest.approx(20.0, abs=1e-6)
+    assert st["angle_deg"] == pytest.approx(90.0, abs=1e-6)
+
+
+# -------------------------------------------------------------------------------- alarms
+
+
+def _closing(distance: float, speed: float, trusted: bool = True) -> tuple:
+    """A state with its bow ``distance`` m from a berth line (heading along it, the stern
+    1.25 m nearer), closing at ``speed``."""
+    line = np.array([[0.0, -50.0], [0.0, 50.0]])
+    state = make_state((-distance, 0.0, 0.0), (0.0, 0.0, np.pi / 2),
+                       (speed, 0.0, 0.0))
+    state.status = SimpleNamespace(integrity=SimpleNamespace(trusted=trusted, reasons=[],
+                                                             mode="fused"))
+    return state, berth_metrics(state, HULL, line)
+
+
+def _approach(book: AlarmBook) -> dict[str, dict]:
+    return {a["kind"]: a for a in book.active() if a["kind"].startswith("approach")}
+
+
+def test_approach_alarms_depend_on_the_distance_amber_then_red():
+    book = AlarmBook(0.0)
+    book.set_approach_limits([ApproachLimit(10.0, 0.20, 0.30), ApproachLimit(50.0, 0.8, 1.2)])
+    # 0.5 m/s at 60 m: beyond the table, nothing; at 40 m: within the 80 cm/s row, nothing
+    for d in (60.0, 40.0):
+        book.update(*_closing(d, 0.5)[:1], [], _closing(d, 0.5)[1])
+        assert _approach(book) == {}
+    # at 9 m the same speed is above the 30 cm/s alarm speed: red for bow and stern
+    state, m = _closing(9.0, 0.5)
+    book.update(state, [], m)
+    alarms = _approach(book)
+    assert alarms.keys() == {"approach-bow", "approach-stern"}
+    assert alarms["approach-bow"]["severity"] == "alarm"
+    assert "50 cm/s" in alarms["approach-bow"]["message"]
+    assert "9.0 m" in alarms["approach-bow"]["message"]
+    # slowing to 25 cm/s: amber, the same alarm eased (its acknowledgement kept)
+    book.acknowledge(alarms["approach-bow"]["id"])
+    state, m = _closing(8.5, 0.25)
+    book.update(state, [], m)
+    eased = _approach(book)["approach-bow"]
+    assert eased["severity"] == "warning" and eased["acknowledged"]
+    # speeding up again: a new red alarm, sounding (not acknowledged)
+    state, m = _closing(8.0, 0.35)
+    book.update(state, [], m)
+    again = _approach(book)["approach-bow"]
+    assert again["severity"] == "alarm" and not again["acknowledged"]
+    assert again["id"] != eased["id"]
+    # hysteresis: just under the limit it holds, well under it clears
+    state, m = _closing(7.9, 0.19)
+    book.update(state, [], m)
+    assert _approach(book)["approach-bow"]["severity"] == "warning"
+    state, m = _closing(7.8, 0.10)
+    book.update(state, [], m)
+    assert _approach(book) == {}
+    # no berth line, or an untrusted pose: no approach alarm
+    state, m = _closing(5.0, 0.6)
+    book.update(state, [], None)
+    assert _approach(book) == {}
+    state, m = _closing(5.0, 0.6, trusted=False)
+    book.update(state, [], m)
+    assert _approach(book) == {}
