@@ -31,17 +31,17 @@ class ApproachLimit:
     """One row of the approach-speed table: at distances below ``within_m``."""
 
     within_m: float
-    warning_mps: float  # amber above this closing speed
-    alarm_mps: float  # red above this
+    warning_cms: float  # amber above this closing speed (cm/s, as crews give it)
+    alarm_cms: float  # red above this
 
 
 # Default: tighter as the distance shrinks; nothing beyond 50 m (the approach, not the
 # berthing). A small craft's or a large ship's own limits are set per session (API, page).
 DEFAULT_APPROACH_LIMITS = (
-    ApproachLimit(3.0, 0.10, 0.15),
-    ApproachLimit(10.0, 0.20, 0.30),
-    ApproachLimit(20.0, 0.40, 0.60),
-    ApproachLimit(50.0, 0.80, 1.20),
+    ApproachLimit(3.0, 10.0, 15.0),
+    ApproachLimit(10.0, 20.0, 30.0),
+    ApproachLimit(20.0, 40.0, 60.0),
+    ApproachLimit(50.0, 80.0, 120.0),
 )
 CLEAR_FRACTION = 0.9  # an approach alarm clears below this fraction of its limit (no chatter)
 SEVERITY_RANK = {"caution": 0, "warning": 1, "alarm": 2}
@@ -113,7 +113,8 @@ class AlarmBook:
     def _approach(self, end: str, t: float, berth: dict[str, float | None] | None) -> None:
         kind = f"approach-{end}"
         distance = None if berth is None else berth.get(f"{end}_distance_m")
-        closing = None if berth is None else berth.get(f"{end}_approach_mps")
+        mps = None if berth is None else berth.get(f"{end}_approach_mps")
+        closing = None if mps is None else 100.0 * mps  # cm/s
         row = None if distance is None else approach_limit(self.approach_limits,
                                                            max(distance, 0.0))
         if row is None or closing is None:
@@ -122,19 +123,18 @@ class AlarmBook:
         current = self._alarms.get(kind)
         active = current.severity if current is not None and current.active else None
         # hysteresis: an active level holds until the speed is clearly below its limit
-        hold = {"alarm": row.alarm_mps, "warning": row.warning_mps}
-        if closing > row.alarm_mps or (active == "alarm" and
-                                       closing > CLEAR_FRACTION * hold["alarm"]):
-            severity, limit = "alarm", row.alarm_mps
-        elif closing > row.warning_mps or (active is not None and
-                                           closing > CLEAR_FRACTION * hold["warning"]):
-            severity, limit = "warning", row.warning_mps
+        if closing > row.alarm_cms or (active == "alarm" and
+                                       closing > CLEAR_FRACTION * row.alarm_cms):
+            severity, limit = "alarm", row.alarm_cms
+        elif closing > row.warning_cms or (active is not None and
+                                           closing > CLEAR_FRACTION * row.warning_cms):
+            severity, limit = "warning", row.warning_cms
         else:
             self._clear(kind)
             return
         self._raise(kind, severity, t,
-                    f"{end.capitalize()} closing the berth at {100 * closing:.0f} cm/s, "
-                    f"{_distance_text(distance)} off (limit {100 * limit:.0f} cm/s within "
+                    f"{end.capitalize()} closing the berth at {closing:.0f} cm/s, "
+                    f"{_distance_text(distance)} off (limit {limit:g} cm/s within "
                     f"{row.within_m:g} m)")
 
     def set_approach_limits(self, limits: list[ApproachLimit]) -> None:

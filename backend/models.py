@@ -11,6 +11,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     ValidationError,
@@ -64,6 +65,11 @@ SatelliteId = Annotated[str, Field(pattern=r"^[GRECJSI]\d{2}$", examples=["G05"]
 FrameTime = Annotated[Seconds | Literal["current"],
                       _one_error("frame_time", f"a time in [0, {MAX_TIME_S:g}] s since the "
                                                "recording start, or 'current'")]
+
+
+def _integral(value: Any) -> Any:
+    """A JSON number with no fraction is an integer (JSON Schema's ``integer``: 26.0 is one)."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
 class Strict(BaseModel):
@@ -162,8 +168,8 @@ class SessionCreate(Strict):
                                           f"{SPEED_MAX:g}], or 'max' (as fast as possible)")
     options: FusionOptionsModel = Field(default_factory=FusionOptionsModel)
     paused: bool = False
-    prediction_seconds: int = Field(5, ge=0, le=30,
-                                    description="predicted hull outlines in the stream")
+    prediction_seconds: Annotated[int, BeforeValidator(_integral)] = Field(
+        5, ge=0, le=30, description="predicted hull outlines in the stream")
     body_height_m: Annotated[float, Field(ge=-50.0, le=100.0)] | None = Field(
         None,
         description="height of the body origin (IMU) above the water: places the water plane "
@@ -388,9 +394,12 @@ class BerthLineRequest(Strict):
     """Exactly one of ``image_points``, ``ned`` and ``from_bow`` (the schema's ``oneOf``)."""
 
     model_config = ConfigDict(json_schema_extra={"oneOf": [
-        {"required": ["image_points"], "not": {"required": ["snap"]}},
-        {"required": ["ned"]},
-        {"required": ["from_bow"], "not": {"required": ["snap"]}}]})
+        {"required": ["image_points"], "not": {"anyOf": [
+            {"required": ["ned"]}, {"required": ["from_bow"]}, {"required": ["snap"]}]}},
+        {"required": ["ned"], "not": {"anyOf": [
+            {"required": ["image_points"]}, {"required": ["from_bow"]}]}},
+        {"required": ["from_bow"], "not": {"anyOf": [
+            {"required": ["image_points"]}, {"required": ["ned"]}, {"required": ["snap"]}]}}]})
 
     # not nullable: absent means absent (defaults are not validated)
     image_points: Annotated[list[PixelPoint], Field(min_length=2, max_length=2)] = Field(
@@ -468,26 +477,14 @@ class ApproachLimitRow(Strict):
     warning_cms: Annotated[float, Field(gt=0.0, le=500.0)] = Field(
         description="amber above this closing speed (cm/s)")
     alarm_cms: Annotated[float, Field(gt=0.0, le=500.0)] = Field(
-        description="red, sounding, above this closing speed (cm/s)")
-
-    @model_validator(mode="after")
-    def _ordered(self) -> ApproachLimitRow:
-        if self.warning_cms > self.alarm_cms:
-            raise ValueError("warning_cms must not exceed alarm_cms")
-        return self
+        description="red, sounding, above this closing speed (cm/s); not below warning_cms "
+                    "(422 otherwise, as for two rows with the same within_m)")
 
 
 class ApproachLimits(Strict):
     """Approach-speed limits of the bow and stern by distance to the berth line."""
 
     rows: Annotated[list[ApproachLimitRow], Field(min_length=0, max_length=12)]
-
-    @model_validator(mode="after")
-    def _distinct(self) -> ApproachLimits:
-        within = [r.within_m for r in self.rows]
-        if len(set(within)) != len(within):
-            raise ValueError("two rows with the same within_m")
-        return self
 
 
 # --------------------------------------------------------------------------------- report

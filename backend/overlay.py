@@ -203,33 +203,33 @@ def _front_ranges(rel_ne: np.ndarray, bins: int) -> np.ndarray:
     front[k[first[has]]] = r[second[has]]
     # bridge short gaps (on three turns, so that a gap across ±180° is bridged too)
     tiled = np.tile(front, 3)
-    idx = np.flatnonzero(np.isfinite(tiled))
-    if len(idx) >= 2:
-        gaps = np.flatnonzero(np.diff(idx) <= FRONT_GAP_BINS + 1)
-        for g in gaps:
-            i, j = idx[g], idx[g + 1]
-            tiled[i + 1:j] = np.interp(np.arange(i + 1, j), [i, j], [tiled[i], tiled[j]])
+    known = np.isfinite(tiled)
+    if known.sum() >= 2:
+        idx = np.arange(len(tiled))
+        prev = np.maximum.accumulate(np.where(known, idx, -1))
+        nxt = np.minimum.accumulate(np.where(known, idx, len(tiled))[::-1])[::-1]
+        gap = (~known) & (prev >= 0) & (nxt < len(tiled)) & (nxt - prev <= FRONT_GAP_BINS + 1)
+        tiled[gap] = np.interp(idx[gap], idx[known], tiled[known])
     return tiled[bins:2 * bins]
 
 
 def clip_segments(a: np.ndarray, b: np.ndarray, keep: Any, piece: float = GRID_PIECE_M
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The parts of segments a→b (N,3) whose points ``keep`` (plan (M,2) → mask) accepts,
-    to ``piece`` metres."""
-    out_a, out_b = [], []
-    for p, q in zip(a, b, strict=True):
-        n = max(1, int(np.ceil(np.linalg.norm(q[:2] - p[:2]) / piece)))
-        s = np.linspace(0.0, 1.0, n + 1)
-        mids = p + ((s[:-1] + s[1:]) / 2)[:, None] * (q - p)
-        ok = np.concatenate([[False], keep(mids[:, :2]), [False]])
-        starts = np.flatnonzero(~ok[:-1] & ok[1:])
-        ends = np.flatnonzero(ok[:-1] & ~ok[1:])
-        for i, j in zip(starts, ends, strict=True):
-            out_a.append(p + s[i] * (q - p))
-            out_b.append(p + s[j] * (q - p))
-    if not out_a:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    return np.array(out_a), np.array(out_b)
+    to about ``piece`` metres (every segment cut into as many pieces as the longest needs)."""
+    a = np.asarray(a, dtype=float).reshape(-1, 3)
+    b = np.asarray(b, dtype=float).reshape(-1, 3)
+    if not len(a):
+        return a, b
+    n = max(1, int(np.ceil(np.linalg.norm(b[:, :2] - a[:, :2], axis=1).max() / piece)))
+    s = np.linspace(0.0, 1.0, n + 1)
+    mids = a[:, None] + ((s[:-1] + s[1:]) / 2)[None, :, None] * (b - a)[:, None]  # (N,n,3)
+    ok = keep(mids[..., :2].reshape(-1, 2)).reshape(len(a), n)
+    padded = np.pad(ok, ((0, 0), (1, 1)))
+    rows, starts = np.nonzero(~padded[:, :-1] & padded[:, 1:])
+    _, ends = np.nonzero(padded[:, :-1] & ~padded[:, 1:])  # same rows, same order
+    d = b - a
+    return a[rows] + s[starts][:, None] * d[rows], a[rows] + s[ends][:, None] * d[rows]
 
 
 def water_visibility(camera_ned: np.ndarray, points: np.ndarray, water_down: float,

@@ -10,6 +10,7 @@ from pydantic import BaseModel, Field
 
 from .alarms import ApproachLimit
 from .deps import SessionDep, errors
+from .errors import Unprocessable
 from .models import (
     ApproachLimitRow,
     ApproachLimits,
@@ -181,9 +182,8 @@ def delete_berth_line(session: SessionDep) -> Response:
 
 
 def _limits(session: Session) -> ApproachLimits:
-    return ApproachLimits(rows=[ApproachLimitRow(within_m=r.within_m,
-                                                 warning_cms=round(100 * r.warning_mps, 3),
-                                                 alarm_cms=round(100 * r.alarm_mps, 3))
+    return ApproachLimits(rows=[ApproachLimitRow(within_m=r.within_m, warning_cms=r.warning_cms,
+                                                 alarm_cms=r.alarm_cms)
                                 for r in session.alarms.approach_limits])
 
 
@@ -200,7 +200,16 @@ def get_approach_limits(session: SessionDep) -> ApproachLimits:
 @router.put("/approach-limits", response_model=ApproachLimits, responses=errors(400, 404),
             summary="Set the approach-speed alarm limits")
 def put_approach_limits(body: ApproachLimits, session: SessionDep) -> ApproachLimits:
-    session.alarms.set_approach_limits([ApproachLimit(r.within_m, r.warning_cms / 100.0,
-                                                      r.alarm_cms / 100.0) for r in body.rows])
+    """The whole table at once (an empty one: no approach alarms). 422 when a row's
+    warning_cms exceeds its alarm_cms or two rows have the same within_m."""
+    for r in body.rows:
+        if r.warning_cms > r.alarm_cms:
+            raise Unprocessable(f"the row within {r.within_m:g} m: warning_cms "
+                                f"({r.warning_cms:g}) exceeds alarm_cms ({r.alarm_cms:g})")
+    within = [r.within_m for r in body.rows]
+    if len(set(within)) != len(within):
+        raise Unprocessable("two rows have the same within_m")
+    session.alarms.set_approach_limits([ApproachLimit(r.within_m, r.warning_cms, r.alarm_cms)
+                                        for r in body.rows])
     session.redraw_if_paused()
     return _limits(session)

@@ -10,7 +10,9 @@ a few hundred metres from zero; the scene's up direction is -z = up):
 * ``/structure/chunk_NNNN`` blue: port-structure points appended as new ids appear; every
   ``STRUCTURE_REFRESH_S`` they are consolidated into one node so that refined positions show;
 * ``/ship`` (pose updated per frame): the hull outline and ``/ship/camera`` the frustum;
-* ``/water_grid``: 2 m cells on the plane down = 0, re-centred on the ship.
+* ``/water_grid``: 2 m cells on the plane down = 0, re-centred on the ship;
+* ``/berth_line`` magenta: the berth line at the water, with a vertical fence up to the quay
+  top it stands for; ``/targets/<id>`` orange: the designated targets, labelled.
 
 The view follows one session (the newest one by default). It is updated from the replay
 thread, throttled; frames computed during a seek are skipped and the path is rebuilt from the
@@ -46,6 +48,9 @@ RED = (220, 30, 30)
 BLUE = (40, 90, 230)
 GREY = (150, 150, 150)
 HULL = (250, 200, 40)
+BERTH = (230, 40, 200)
+TARGET = (255, 140, 30)
+BERTH_FENCE_M = 1.5  # the berth line's fence: this high above the water
 GRID_CELL_M = 2.0
 
 
@@ -83,6 +88,8 @@ class ViserView:
         self._last_t = -math.inf
         self._needs_rebuild = False
         self._framed = False  # initial camera pointed at this session's ship yet
+        self._berth_key: tuple | None = None
+        self._targets: dict[str, Any] = {}
 
     @property
     def port(self) -> int:
@@ -120,6 +127,7 @@ class ViserView:
             state = session.history.latest()
             if state is not None:
                 self._update_pose(state)
+            self._update_berth_and_targets(session, state)
 
     def forget(self, session: Session) -> None:
         with self._lock:
@@ -133,7 +141,8 @@ class ViserView:
             except ValueError:
                 pass
         self._session = None
-        for handle in [*self._nodes.values(), *self._chunks, *self._point_chunks]:
+        for handle in [*self._nodes.values(), *self._chunks, *self._point_chunks,
+                       *self._targets.values()]:
             try:
                 handle.remove()
             except Exception:  # already removed by a parent
@@ -143,6 +152,8 @@ class ViserView:
         self._chunks.clear()
         self._point_chunks.clear()
         self._point_ids.clear()
+        self._targets.clear()
+        self._berth_key = None
         self._tail = []
         self._path_count = 0
         self._path_last = None
@@ -198,6 +209,7 @@ class ViserView:
                     self._last_pose = now
                 if now - self._last_structure >= STRUCTURE_PERIOD_S:
                     self._update_structure(session, now)
+                    self._update_berth_and_targets(session, result.state)
                     self._last_structure = now
             except Exception:  # the 3-D view is secondary: never break the replay for it
                 log.exception("viser update failed")
@@ -277,6 +289,39 @@ class ViserView:
         _times, positions = session.history.arrays()
         for p in positions:
             self._append_path(p)
+
+    # berth line and targets: what the officer set on the page, in the same scene
+
+    def _update_berth_and_targets(self, session: Session, state: Any | None) -> None:
+        line = session.berth.world(state)
+        key = None if line is None else tuple(np.round(line, 3).ravel().tolist())
+        if key != self._berth_key:
+            old = self._nodes.pop("berth", None)
+            if old is not None:
+                old.remove()
+            if line is not None:
+                water = session.water.down_m
+                foot = np.column_stack([line, np.full(2, water)])
+                top = foot - [0.0, 0.0, BERTH_FENCE_M]
+                segments = np.array([[foot[0], foot[1]], [top[0], top[1]], [foot[0], top[0]],
+                                     [foot[1], top[1]]], dtype=np.float32)
+                self._nodes["berth"] = self.server.scene.add_line_segments(
+                    "/berth_line", segments, BERTH, thickness=5.0, thickness_units="screen")
+            self._berth_key = key
+        seen = set()
+        for target in session.targets.all():
+            seen.add(target.id)
+            position = np.asarray(target.position_ned, dtype=float)
+            handle = self._targets.get(target.id)
+            if handle is None:
+                handle = self._targets[target.id] = self.server.scene.add_icosphere(
+                    f"/targets/{target.id}", radius=0.35, color=TARGET, position=position)
+                self.server.scene.add_label(f"/targets/{target.id}/label",
+                                            target.label or target.id)
+            else:
+                handle.position = position
+        for gone in set(self._targets) - seen:
+            self._targets.pop(gone).remove()
 
     # structure: new ids appended in chunks, consolidated now and then
 

@@ -161,7 +161,7 @@ def _approach(book: AlarmBook) -> dict[str, dict]:
 
 def test_approach_alarms_depend_on_the_distance_amber_then_red():
     book = AlarmBook(0.0)
-    book.set_approach_limits([ApproachLimit(10.0, 0.20, 0.30), ApproachLimit(50.0, 0.8, 1.2)])
+    book.set_approach_limits([ApproachLimit(10.0, 20.0, 30.0), ApproachLimit(50.0, 80.0, 120.0)])
     # 0.5 m/s at 60 m: beyond the table, nothing; at 40 m: within the 80 cm/s row, nothing
     for d in (60.0, 40.0):
         book.update(*_closing(d, 0.5)[:1], [], _closing(d, 0.5)[1])

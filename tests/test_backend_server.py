@@ -224,10 +224,44 @@ def test_designate_targets_and_berth_line(live: Live, replayed: dict):
         image = client.put(f"{base}/berth-line", json={
             "image_points": [[200, 560], [760, 560]], "frame_time": last["t"]}).json()
         assert image["source"] == "image" and image["stern_distance_m"] is not None
+        # open water at the bottom of the picture: no quay there, the water plane, said so
+        assert image["method"] == "water-plane" and "water plane" in image["note"]
         for body in ({"ned": [[0, 0], [0, 1]], "image_points": [[1, 1], [2, 2]]},
-                     {"ned": [[0, 0]]}, {}, {"ned": [[0, 0], [0, 0.01]]}):
+                     {"ned": [[0, 0]]}, {}, {"ned": [[0, 0], [0, 0.01]]},
+                     {"image_points": [[1, 1], [2, 2]], "snap": True},
+                     {"from_bow": {"distance_m": 5, "bearing_deg": 400}},
+                     {"from_bow": {"distance_m": 5}}):
             r = client.put(f"{base}/berth-line", json=body)
             assert r.status_code == 422, (body, r.text)
+        # typed in from the bow, then nudged away from the ship and turned
+        typed = client.put(f"{base}/berth-line", json={
+            "from_bow": {"distance_m": 12.5, "bearing_deg": -90}}).json()
+        assert typed["source"] == "typed"
+        assert typed["bow_distance_m"] == pytest.approx(12.5, abs=1e-3)
+        assert typed["angle_deg"] == pytest.approx(0.0, abs=1e-3)
+        nudged = client.post(f"{base}/berth-line/nudge", json={"offset_m": 0.3}).json()
+        assert nudged["bow_distance_m"] == pytest.approx(12.8, abs=1e-3)
+        turned = client.post(f"{base}/berth-line/nudge", json={"rotate_deg": 2.0}).json()
+        assert abs(turned["angle_deg"]) == pytest.approx(2.0, abs=1e-3)
+        assert client.post(f"{base}/berth-line/nudge",
+                           json={"offset_m": 1e9}).status_code == 422
+        # the approach-speed alarm limits: a table by distance, checked
+        limits = client.get(f"{base}/approach-limits").json()["rows"]
+        assert [r["within_m"] for r in limits] == sorted(r["within_m"] for r in limits)
+        assert all(r["warning_cms"] <= r["alarm_cms"] for r in limits)
+        mine = {"rows": [{"within_m": 30, "warning_cms": 20, "alarm_cms": 40},
+                         {"within_m": 5, "warning_cms": 5, "alarm_cms": 8}]}
+        got = client.put(f"{base}/approach-limits", json=mine).json()["rows"]
+        assert [r["within_m"] for r in got] == [5, 30]
+        for bad in ({"rows": [{"within_m": 5, "warning_cms": 9, "alarm_cms": 8}]},
+                    {"rows": [{"within_m": 5, "warning_cms": 1, "alarm_cms": 8}] * 2},
+                    {"rows": [{"within_m": -1, "warning_cms": 1, "alarm_cms": 8}]}):
+            assert client.put(f"{base}/approach-limits", json=bad).status_code == 422, bad
+        assert client.delete(f"{base}/berth-line").status_code == 204
+        r = client.post(f"{base}/berth-line/nudge", json={"offset_m": 0.1})
+        assert r.status_code == 422 and "no berth line" in r.json()["detail"]
+        client.put(f"{base}/berth-line", json={"from_bow": {"distance_m": 8,
+                                                            "bearing_deg": 0}})
 
 
 def test_viser_scene_holds_trajectory_and_structure(live: Live, replayed: dict):
@@ -259,6 +293,16 @@ def test_viser_scene_holds_trajectory_and_structure(live: Live, replayed: dict):
         assert r.status_code == 200 and r.json()["session"] == replayed["id"]
     again = asyncio.run(_viser_scene(viewer["url"].replace("http://", "ws://")))
     assert any(m.get("name", "").startswith("/fused/chunk_") for m in again)
+    # the berth line and the targets set on the page are in the 3-D view too
+    names = {m["name"]: m for m in again if "props" in m}
+    with httpx.Client(base_url=live.url) as client:
+        base = f"/api/sessions/{replayed['id']}"
+        line = client.get(f"{base}/berth-line").json()["line_ne"]
+        targets = client.get(f"{base}/targets").json()["targets"]
+    assert names["/berth_line"]["type"] == "LineSegmentsMessage"
+    foot = np.asarray(names["/berth_line"]["props"]["points"], dtype=float).reshape(-1, 2, 3)[0]
+    np.testing.assert_allclose(foot[:, :2], line, atol=0.05)  # (viser may send float16)
+    assert targets and all(f"/targets/{t['id']}" in names for t in targets)
 
 
 def test_cli_serve_binds_loopback_and_checks_the_recording(tmp_path: Path, capsys):

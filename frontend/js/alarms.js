@@ -1,6 +1,7 @@
-// The alarm list (integrity and faults from the server, each frame): an alarm of severity
-// "alarm" sounds (Web Audio, a two-tone beep every second) until it is acknowledged; an
-// acknowledged alarm stays listed, silent, while it is active. Browsers only start audio after
+// The alarm list (integrity, faults and berthing approach speed from the server, each frame):
+// an alarm of severity "alarm" (red) sounds (Web Audio, a two-tone beep every second) until it
+// is acknowledged; a "warning" (amber) chimes once when it appears; an acknowledged alarm stays
+// listed, silent, while it is active. Browsers only start audio after
 // a user gesture: the sound starts on the first click or key anywhere on the page.
 
 export class Alarms {
@@ -13,6 +14,8 @@ export class Alarms {
     this.timer = null;
     this.sounding = false;
     this.beeps = 0; // for the tests: how many beeps were played
+    this.chimes = 0; // and how many single chimes (new warnings)
+    this.heard = new Set(); // warnings already chimed for
     root.querySelector("#alarm-ack-all").addEventListener("click", () => this.acknowledgeAll());
     const unlock = () => {
       if (!this.ctx && (window.AudioContext || window.webkitAudioContext)) {
@@ -28,6 +31,12 @@ export class Alarms {
   update(alarms) {
     this.current = alarms || [];
     this.card.hidden = this.current.length === 0;
+    for (const a of this.current) {
+      if (a.severity === "warning" && !a.acknowledged && !this.heard.has(a.id)) {
+        this.heard.add(a.id);
+        this._chime();
+      }
+    }
     this.list.replaceChildren(...this.current.map((a) => this._item(a)));
     this._sound(this.current.some((a) => a.severity === "alarm" && !a.acknowledged));
   }
@@ -76,12 +85,21 @@ export class Alarms {
     }
   }
 
+  _chime() {
+    this.chimes += 1;
+    this._tones([[740, 0]]);
+  }
+
   _beep() {
     this.beeps += 1;
+    this._tones([[880, 0], [660, 0.18]]);
+  }
+
+  _tones(tones) {
     const ctx = this.ctx;
     if (!ctx || ctx.state !== "running") return;
     const t = ctx.currentTime;
-    for (const [freq, at] of [[880, 0], [660, 0.18]]) {
+    for (const [freq, at] of tones) {
       const osc = ctx.createOscillator();
       const gain = ctx.createGain();
       osc.frequency.value = freq;

@@ -76,6 +76,9 @@ export const api = {
   deleteTarget: (id, targetId) => request("DELETE", `/api/sessions/${id}/targets/${targetId}`),
   setBerthLine: (id, body) => request("PUT", `/api/sessions/${id}/berth-line`, body),
   clearBerthLine: (id) => request("DELETE", `/api/sessions/${id}/berth-line`),
+  nudgeBerthLine: (id, body) => request("POST", `/api/sessions/${id}/berth-line/nudge`, body),
+  approachLimits: (id) => request("GET", `/api/sessions/${id}/approach-limits`),
+  setApproachLimits: (id, body) => request("PUT", `/api/sessions/${id}/approach-limits`, body),
   acknowledgeAlarm: (id, alarmId) =>
     request("POST", `/api/sessions/${id}/alarms/${alarmId}/acknowledge`),
   viewer: () => request("GET", "/api/viewer"),

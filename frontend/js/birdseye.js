@@ -105,13 +105,18 @@ export class BirdsEye {
     const step = niceStep(range / 2);
     this._rings(ctx, step, range, c);
     this._polygon(ctx, plan.frustum, null, c.frustum);
-    this._points(ctx, plan.points, c);
+    this._points(ctx, plan.points, c, opts.allPoints);
     if (plan.berth_line) this._berth(ctx, plan.berth_line, c);
     this._prediction(ctx, plan.prediction, opts.predictSeconds ?? 99, c);
     // the ship last: nothing may hide it
     this._polygon(ctx, this._shipOutline(plan), c.shipEdge, c.ship, 1.5);
     this._heading(ctx, plan, range, c);
     ctx.filter = "none";
+    // labels never overlap one another nor the own ship: each takes the first free place
+    // around its mark, or is left out (the mark stays; the list has the figure)
+    const ship = this._shipOutline(plan).map((p) => this.toScreen(p));
+    const xs = ship.map((p) => p[0]), ys = ship.map((p) => p[1]);
+    this.placed = [[Math.min(...xs) - 4, Math.min(...ys) - 4, Math.max(...xs) + 4, Math.max(...ys) + 4]];
     for (const t of plan.targets || []) this._target(ctx, t, frame.overlay.targets, c);
     for (const p of opts.picks || []) drawPick(ctx, this.toScreen(p), c, 7);
     this._north(ctx, w, c);
@@ -166,18 +171,20 @@ export class BirdsEye {
     if (stroke) { ctx.strokeStyle = stroke; ctx.lineWidth = width; ctx.stroke(); }
   }
 
-  _points(ctx, points, c) {
+  _points(ctx, points, c, all) {
     if (!points?.ne?.length) return;
     ctx.globalAlpha = c.pointAlpha;
     for (let i = 0; i < points.ne.length; i++) {
+      const obstacle = points.obstacle ? points.obstacle[i] : points.converged?.[i] !== false;
+      if (!obstacle && !all) continue;
       const [x, y] = this.toScreen(points.ne[i]);
-      if (points.converged?.[i] === false) {  // still converging: hollow, as on the video
-        ctx.strokeStyle = points.color[i];
+      if (!obstacle) { // not an obstacle (converging, on the water, far): a faint hollow mark
+        ctx.strokeStyle = c.other;
         ctx.lineWidth = 1;
-        ctx.strokeRect(x - 1.8, y - 1.8, 3.6, 3.6);
+        ctx.strokeRect(x - 1.5, y - 1.5, 3, 3);
         continue;
       }
-      ctx.fillStyle = points.color[i];
+      ctx.fillStyle = c.bands[points.band?.[i] ?? 6] || points.color[i];
       ctx.fillRect(x - 1.8, y - 1.8, 3.6, 3.6);
     }
     ctx.globalAlpha = 1;
@@ -231,7 +238,15 @@ export class BirdsEye {
     ctx.stroke();
     const r = readouts?.find((o) => o.id === t.id);
     const text = r ? `${r.label || t.id} ${r.distance_m.toFixed(1)} m` : t.id;
-    label(ctx, x + 9, y - 10, text, c.target, c.targetBg, 12);
+    ctx.font = "700 12px system-ui, sans-serif";
+    const w = ctx.measureText(text).width + 8, h = 20;
+    for (const [dx, dy] of [[9, -10], [9, 10], [-9 - w, -10], [-9 - w, 10], [-w / 2, -22], [-w / 2, 22]]) {
+      const box = [x + dx - 4, y + dy - h / 2, x + dx - 4 + w, y + dy + h / 2];
+      if (this.placed.some((p) => box[0] < p[2] && box[2] > p[0] && box[1] < p[3] && box[3] > p[1])) continue;
+      this.placed.push(box);
+      label(ctx, x + dx, y + dy, text, c.target, c.targetBg, 12);
+      return;
+    }
   }
 
   _north(ctx, w, c) {

@@ -23,6 +23,10 @@ export class Controls {
     this.badge = $("replay-badge");
     this.playing = false;
     this.dragging = false;
+    this.session = null;
+    this.behind = 0;
+    this.seekFrom = null;
+    this.seekTarget = null;
 
     this.play.addEventListener("click", () => (this.playing ? on.pause() : on.play()));
     this.seek.addEventListener("input", () => {
@@ -72,15 +76,47 @@ export class Controls {
     if (s.speed != null && [...this.speed.options].some((o) => o.value === String(s.speed))) {
       this.speed.value = String(s.speed);
     }
-    if (!this.dragging && s.state !== "playing") this.setTime(s.seek_target_s ?? s.time_s);
-    const badge = {
+    if (!this.dragging && s.state !== "playing" && s.state !== "seeking") this.setTime(s.time_s);
+    if (s.state === "seeking") {
+      // a backward seek restarts from a checkpoint: progress runs from the earliest time seen
+      if (this.seekFrom == null || s.seek_target_s !== this.seekTarget) {
+        this.seekFrom = s.time_s;
+        this.seekTarget = s.seek_target_s;
+      }
+      this.seekFrom = Math.min(this.seekFrom, s.time_s);
+    } else {
+      this.seekFrom = this.seekTarget = null;
+    }
+    this.session = s;
+    this._badge();
+  }
+
+  /** From each shown frame: how the replay keeps up with real time. */
+  setReplay(replay) {
+    this.behind = replay?.state === "playing" ? replay.behind_s ?? 0 : 0;
+    this._badge();
+  }
+
+  _badge() {
+    const s = this.session;
+    if (!s) return;
+    let text = {
       paused: "PAUSED", ended: "END OF RECORDING",
       // what stopped it stays on screen (the toast goes): ▶ restarts the replay
       error: `REPLAY STOPPED: ${(s.error || "unknown error").slice(0, 140)} — ▶ restarts it`,
-      seeking: `SEEKING ${fmtTime(s.seek_target_s)}…`, starting: "STARTING…",
+      starting: "STARTING…",
     }[s.state];
-    this.badge.hidden = !badge;
-    this.badge.textContent = badge || "";
+    if (s.state === "seeking") {
+      const span = (s.seek_target_s ?? 0) - (this.seekFrom ?? 0);
+      const pct = span > 0 ? Math.min(99, Math.max(0, 100 * (s.time_s - this.seekFrom) / span)) : 0;
+      text = `SEEKING TO ${fmtTime(s.seek_target_s)} — ${pct.toFixed(0)} %`;
+      this.time.textContent = fmtTime(s.seek_target_s);
+    } else if (s.state === "playing" && this.behind >= 1) {
+      text = `BEHIND REAL TIME BY ${this.behind.toFixed(0)} s`;
+    }
+    this.badge.hidden = !text;
+    this.badge.textContent = text || "";
+    this.badge.dataset.kind = s.state === "playing" ? "behind" : s.state;
   }
 
   /** From each shown frame: the time of the picture on screen. */

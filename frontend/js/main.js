@@ -6,8 +6,8 @@ import { Alarms } from "./alarms.js";
 import { api } from "./api.js";
 import { BirdsEye } from "./birdseye.js";
 import { Controls, fmtTime } from "./controls.js";
-import { colorRange, drawLegend, drawOverlay, drawVideo, fitCanvas, toImage } from "./overlay.js";
-import { Panel } from "./panel.js";
+import { drawLegend, drawOverlay, drawVideo, fitCanvas, toImage } from "./overlay.js";
+import { Limits, Panel } from "./panel.js";
 import { Status } from "./status.js";
 import { Stream } from "./stream.js";
 import { Targets } from "./targets.js";
@@ -21,8 +21,8 @@ const $ = (id) => document.getElementById(id);
 const el = {
   wrap: $("video-wrap"), video: $("video"), overlay: $("overlay"), plan: $("birdseye"),
   hint: $("hint"), toast: $("toast"), theme: $("theme"), orient: $("orient"),
-  berthSet: $("berth-set"), legendMin: $("legend-min"), legendMid: $("legend-mid"),
-  legendMax: $("legend-max"),
+  berthSet: $("berth-set"), legendBands: $("legend-bands"), legendKind: $("legend-kind"),
+  allPoints: $("all-points"), berthForm: $("berth-form"),
 };
 
 const app = {
@@ -41,6 +41,11 @@ const app = {
 
 const status = new Status(document);
 const panel = new Panel(document);
+const limits = new Limits(document, {
+  load: () => app.session && api.approachLimits(app.session.id).catch((err) => toast(err.message)),
+  save: (body) => app.session && api.setApproachLimits(app.session.id, body)
+    .catch((err) => toast(`Limits not set: ${err.message}`)),
+});
 const alarms = new Alarms(document, (alarmId) => api.acknowledgeAlarm(app.session?.id, alarmId));
 const plan = new BirdsEye(el.plan);
 const viewer = new Viewer(document);
@@ -65,6 +70,7 @@ const stream = new Stream({
     app.statusSeq += 1;
     app.session = s;
     controls.updateSession(s);
+    followSeek(s);
     if (s.state === "error" && s.error) toast(`Replay stopped: ${s.error}`);
   },
   onState: (state, detail) => status.setConnection(state, detail),
@@ -81,7 +87,9 @@ window.berthing = {
   get plan() { return plan.view; },
   get toasts() { return [...toasts]; },
   get stats() { return { frames: stream.frames, dropped: stream.dropped, connection: stream.state }; },
-  get alarms() { return { list: alarms.current, sounding: alarms.sounding, beeps: alarms.beeps }; },
+  get alarms() {
+    return { list: alarms.current, sounding: alarms.sounding, beeps: alarms.beeps, chimes: alarms.chimes };
+  },
   dropConnection() { stream.ws?.close(); }, // as a network glitch would: the stream reconnects
   show(header) { app.frame = header; render(); }, // draw a given header over the current picture
 };
@@ -100,17 +108,20 @@ function render() {
   const opts = {
     predictSeconds: controls.predictSeconds,
     trusted: app.trust.trusted,
+    allPoints: el.allPoints.checked,
   };
   if (f && app.view) {
     drawOverlay(el.overlay, f, app.view, { ...opts, picks: picksIn("image") });
   }
   plan.draw(f, { ...opts, picks: picksIn("plan") });
-  const alarm = panel.update(f, app.trust.trusted);
+  const level = panel.update(f, app.trust.trusted);
+  limits.update(f?.overlay?.berth);
   document.querySelector(".side").classList.toggle("unreliable", !!f && !app.trust.trusted);
-  el.wrap.classList.toggle("alarm", alarm);
+  el.wrap.classList.toggle("alarm", level === "alarm");
+  el.wrap.classList.toggle("warning", level === "warning");
   targets.update(f?.overlay?.targets);
   alarms.update(f?.alarms);
-  if (f) controls.setTime(f.t);
+  if (f) { controls.setTime(f.t); controls.setReplay(f.replay); }
   legend(f);
 }
 
@@ -158,10 +169,14 @@ function withLocal(f) {
   return { ...f, overlay: ov };
 }
 
+let legendKey = null;
 function legend(f) {
-  const range = colorRange(f?.overlay);
-  el.legendMax.textContent = range ? `${range.toFixed(0)}+ m` : "– m"; // farther is blue too
-  el.legendMid.textContent = range ? `${(range / 2).toFixed(0)}` : "";
+  const bands = f?.overlay?.distance_bands_m || [2, 5, 10, 20, 50, 100];
+  const palette = colors().bands || [];
+  const key = `${bands.join(",")}|${palette.join(",")}`;
+  if (key !== legendKey) { legendKey = key; drawLegend(el.legendBands, bands, palette); }
+  el.legendKind.textContent = el.allPoints.checked ? "all points (○ not an obstacle)"
+    : "quay points near ship and berth";
 }
 
 function picksIn(space) {
@@ -200,6 +215,22 @@ function watch(s) {
   controls.updateSession(s);
   controls.setPredictMax(s.prediction_seconds);
   stream.open(s.id);
+  limits.refresh();
+}
+
+// While a seek runs no frame comes: the session's status is asked for a few times a second
+// so that the badge shows how far the seek has got.
+let seekPoll = null;
+function followSeek(s) {
+  if (s.state !== "seeking" || seekPoll) return;
+  seekPoll = setInterval(async () => {
+    if (!app.session || app.session.state !== "seeking") { clearInterval(seekPoll); seekPoll = null; return; }
+    try {
+      const now = await api.session(app.session.id);
+      if (app.session.state === "seeking") { app.session = now; controls.updateSession(now); }
+      if (now.state !== "seeking") { clearInterval(seekPoll); seekPoll = null; }
+    } catch { /* the stream's status messages still come */ }
+  }, 250);
 }
 
 async function control(body) {
@@ -210,6 +241,7 @@ async function control(body) {
     if (app.statusSeq !== seq) return; // the stream already told us what happened next
     app.session = s;
     controls.updateSession(s);
+    followSeek(s);
   } catch (err) {
     toast(err.message);
   }
@@ -255,9 +287,10 @@ async function pick(space, p) {
     return;
   }
   const [a, b] = app.picks;
+  // plan clicks snap to the quay face's points near them, as video clicks are fitted to them
   const body = space === "image"
     ? { image_points: [a.p, b.p], frame_time: a.t }
-    : { ned: [a.p, b.p] };
+    : { ned: [a.p, b.p], snap: true };
   stopPicking();
   try {
     const st = await api.setBerthLine(app.session.id, body);
@@ -265,6 +298,7 @@ async function pick(space, p) {
     // in the picture, up to the lens distortion) until the server draws it
     const polylines = space === "image" ? [[a.p, b.p]] : [];
     editLocal((L) => { L.berth = { ...st, polylines }; });
+    if (st.method === "water-plane") toast(`Berth line on the water plane: ${st.note}`);
   } catch (err) {
     toast(`Berth line not set: ${err.message}`);
   }
@@ -275,7 +309,7 @@ function startPicking() {
   app.picks = [];
   el.berthSet.classList.add("active");
   el.wrap.classList.add("picking");
-  hint("Berth line: click two points on the quay edge — in the video or the plan");
+  hint("Berth line: click two points on the quay (coping, wall or water line) — in the video or the plan");
 }
 
 function stopPicking() {
@@ -288,6 +322,32 @@ function stopPicking() {
 }
 
 el.berthSet.addEventListener("click", () => (app.picking ? stopPicking() : startPicking()));
+$("berth-type").addEventListener("click", () => { el.berthForm.hidden = !el.berthForm.hidden; });
+el.berthForm.addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  if (!app.session) return;
+  const body = { from_bow: { distance_m: parseFloat($("bow-distance-in").value),
+    bearing_deg: parseFloat($("bow-bearing-in").value) } };
+  await setBerth(() => api.setBerthLine(app.session.id, body));
+  el.berthForm.hidden = true;
+});
+for (const [id, body] of [["nudge-out", { offset_m: 0.1 }], ["nudge-in", { offset_m: -0.1 }],
+  ["nudge-ccw", { rotate_deg: -0.5 }], ["nudge-cw", { rotate_deg: 0.5 }]]) {
+  $(id).addEventListener("click", () => app.session
+    && setBerth(() => api.nudgeBerthLine(app.session.id, body)));
+}
+el.allPoints.addEventListener("change", () => render());
+
+/** A berth line the server answered for: shown at once (the plan has it; the video gets the
+ *  server's projection with the next frame). */
+async function setBerth(call) {
+  try {
+    const st = await call();
+    editLocal((L) => { L.berth = { ...st, polylines: [] }; });
+  } catch (err) {
+    toast(`Berth line not set: ${err.message}`);
+  }
+}
 $("berth-clear").addEventListener("click", async () => {
   stopPicking();
   if (!app.session) return;
@@ -375,7 +435,6 @@ async function start() {
   initTheme();
   applyTheme(currentTheme());
   applyOrientation(plan.mode);
-  drawLegend($("legend-bar"));
   controls.predict.value = localStorage.getItem(PREDICT_KEY) || controls.predict.value;
   controls.setPredictMax(PREDICT_MAX_S);
   $("time").textContent = fmtTime(0);

@@ -71,8 +71,9 @@ export function drawOverlay(canvas, frame, view, opts) {
   if (!opts.trusted) ctx.filter = "grayscale(1)";
 
   drawGrid(ctx, ov.video.grid, opts.trusted ? c.grid : c.gridOff, px);
-  drawPoints(ctx, ov.video.points, px, c);
+  drawPoints(ctx, ov.video.points, px, c, opts.allPoints);
   drawPrediction(ctx, ov.video.prediction, opts.predictSeconds, c, px);
+  drawHull(ctx, ov.video.hull, c, px);
   if (ov.berth?.polylines) drawBerth(ctx, ov.berth.polylines, c, px);
   ctx.restore();
 
@@ -80,7 +81,7 @@ export function drawOverlay(canvas, frame, view, opts) {
   // the targets' distances last, on top of everything else
   ctx.setTransform(view.dpr, 0, 0, view.dpr, 0, 0);
   if (!opts.trusted) ctx.filter = "grayscale(1)";
-  if (ov.berth?.polylines?.length) labelBerth(ctx, ov.berth.polylines, view, c);
+  if (ov.berth?.polylines?.length) labelBerth(ctx, ov.berth, view, c);
   labelPrediction(ctx, ov.video.prediction, opts.predictSeconds, view, c);
   for (const p of opts.picks || []) drawPick(ctx, toCss(view, p[0], p[1]), c);
   for (const t of ov.targets || []) {
@@ -124,29 +125,43 @@ function drawGrid(ctx, grid, color, px) {
   strokePolylines(ctx, grid.lines);
 }
 
-function drawPoints(ctx, points, px, c) {
+/** Structure points in the colour of their distance band. By default only the obstacles
+ *  (converged, above the water, near the ship or the berth); with ``all`` the others too,
+ *  as small hollow rings in a neutral colour. */
+function drawPoints(ctx, points, px, c, all) {
   if (!points?.uv?.length) return;
   const r = 2.6 * px;
   ctx.globalAlpha = c.pointAlpha;
   for (let i = 0; i < points.uv.length; i++) {
+    const obstacle = points.obstacle ? points.obstacle[i] : points.converged?.[i] !== false;
+    if (!obstacle && !all) continue;
     const [u, v] = points.uv[i];
     ctx.beginPath();
-    ctx.arc(u, v, r, 0, 2 * Math.PI);
-    if (points.converged?.[i] === false) {
-      // still converging (its distance not to be trusted yet): a hollow ring
-      ctx.strokeStyle = points.color[i];
-      ctx.lineWidth = 1.2 * px;
+    if (!obstacle) {
+      ctx.arc(u, v, 0.7 * r, 0, 2 * Math.PI);
+      ctx.strokeStyle = c.other;
+      ctx.lineWidth = 1 * px;
       ctx.stroke();
       continue;
     }
+    ctx.arc(u, v, r, 0, 2 * Math.PI);
     // a dark rim keeps yellow and cyan points visible on bright quay walls
-    ctx.fillStyle = points.color[i];
+    ctx.fillStyle = c.bands[points.band?.[i] ?? 6] || points.color[i];
     ctx.strokeStyle = "rgba(0,0,0,0.55)";
     ctx.lineWidth = 0.8 * px;
     ctx.fill();
     ctx.stroke();
   }
   ctx.globalAlpha = 1;
+}
+
+/** The hull now (0 s) at the water line: solid, the reference the predictions move from. */
+function drawHull(ctx, lines, c, px) {
+  if (!lines?.length) return;
+  ctx.strokeStyle = c.hull;
+  ctx.lineWidth = 3 * px;
+  ctx.setLineDash([]);
+  strokePolylines(ctx, lines);
 }
 
 /** Predicted outlines 1..N s ahead, fading with time: the nearest future is the surest. */
@@ -170,17 +185,19 @@ function drawBerth(ctx, lines, c, px) {
   strokePolylines(ctx, lines);
 }
 
-function labelBerth(ctx, lines, view, c) {
-  // at the left end of the visible line, clear of the targets that sit on the quay
-  const pts = lines.flat();
+function labelBerth(ctx, berth, view, c) {
+  // at the left end of the visible line, clear of the targets that sit on the quay; a line
+  // on the water plane (no quay points near the clicks) says so
+  const pts = berth.polylines.flat();
   if (!pts.length) return;
   const left = pts.reduce((a, b) => (b[0] < a[0] ? b : a));
   const [x, y] = toCss(view, Math.max(left[0], 0), left[1]);
-  label(ctx, x + 8, y + 16, "BERTH LINE", c.berth, c.targetBg, 12);
+  const text = berth.method === "water-plane" ? "BERTH LINE (water plane, ±m)" : "BERTH LINE";
+  label(ctx, x + 8, y + 16, text, c.berth, c.targetBg, 12);
 }
 
 function drawTarget(ctx, [x, y], t, c, trusted, right) {
-  const col = trusted ? c.target : "#b0b0b0";
+  const col = trusted ? c.target : c.untrusted;
   ctx.lineWidth = 4;
   ctx.strokeStyle = "rgba(0,0,0,0.6)";
   ring(ctx, x, y);
@@ -227,38 +244,16 @@ export function label(ctx, x, y, text, color, bg, size = 15) {
   ctx.fillText(text, x, y + 1);
 }
 
-/** The distance colour scale, identical to the server's hue_color (red near → blue far). */
-export function hueColor(fraction) {
-  const h6 = 4 * Math.min(Math.max(fraction, 0), 1);
-  const clamp = (x) => Math.round(255 * Math.min(Math.max(x, 0), 1));
-  return `rgb(${clamp(2 - h6)},${clamp(Math.min(h6, 4 - h6))},${clamp(h6 - 2)})`;
-}
-
-/** The distance shown blue (the full colour scale), for the legend. The stream does not carry
- *  it, so it is read back from the points themselves: a point whose colour is not at either end
- *  of the scale gives distance / fraction exactly. Falls back to twice the grid radius. */
-export function colorRange(overlay) {
-  if (overlay?.color_range_m) return overlay.color_range_m;
-  const pts = overlay?.video?.points;
-  for (let i = 0; i < (pts?.color?.length ?? 0); i++) {
-    const f = hueFraction(pts.color[i]);
-    if (f > 0.08 && f < 0.92) return pts.distance_m[i] / f;
-  }
-  const r = overlay?.birdseye?.radius_m;
-  return r ? 2 * r : null;
-}
-
-/** Inverse of hueColor for '#rrggbb'. */
-function hueFraction(hex) {
-  const [r, g, b] = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
-  const h6 = r >= 1 && b <= 0 ? g : g >= 1 && b <= 0 ? 2 - r : r <= 0 && g >= 1 ? 2 + b : 4 - g;
-  return h6 / 4;
-}
-
-export function drawLegend(canvas) {
-  const ctx = canvas.getContext("2d");
-  for (let x = 0; x < canvas.width; x++) {
-    ctx.fillStyle = hueColor(x / (canvas.width - 1));
-    ctx.fillRect(x, 0, 1, canvas.height);
-  }
+/** The legend of the fixed distance bands: a swatch and its range for each. */
+export function drawLegend(container, bands, colours) {
+  const edges = [0, ...bands];
+  container.replaceChildren(...colours.map((col, i) => {
+    const item = document.createElement("span");
+    item.className = "band";
+    const sw = document.createElement("i");
+    sw.style.background = col;
+    const text = i < bands.length ? `${edges[i]}–${edges[i + 1]}` : `${bands[bands.length - 1]}+`;
+    item.append(sw, document.createTextNode(i === bands.length ? `${text} m` : text));
+    return item;
+  }));
 }

@@ -1,50 +1,69 @@
-// The berthing panel: what crews actually call out. Bow and stern distance to the berth line,
-// their approach speeds in cm/s (an alarm when closing faster than the limit), and the ship's
-// heading, speed over ground and rate of turn.
+// The berthing panel: what pilots' docking displays give. Bow and stern distance to the berth
+// line (from the hull's foremost and aftmost points) with their σ, approach speeds in cm/s
+// coloured by the session's approach alarms (amber, red: the limits depend on the distance,
+// see the limits table), speed along the berth, angle to it, time to contact; and the ship's
+// heading, speed over ground and rate of turn. The alarms themselves are the server's (one
+// alarm list with the integrity alarms): the panel only shows their level where the figure is.
 
-const LIMIT_KEY = "berthing.limitCms";
 const KNOTS_PER_MPS = 3600 / 1852;
+
+/** A distance with the digits its range deserves: cm below 5 m, dm below 50 m, m beyond. */
+export function fmtDistance(d) {
+  if (d == null || !Number.isFinite(d)) return "–";
+  const a = Math.abs(d);
+  return d.toFixed(a < 5 ? 2 : a < 50 ? 1 : 0);
+}
+
+function fmtSigma(s) {
+  return s == null ? "" : `±${s.toFixed(s < 0.095 ? 2 : 1)}`;
+}
+
+const METHOD_TEXT = {
+  "quay-face": (b) => `quay face · ${b.support_points} pts · σ ${b.sigma_m?.toFixed(2) ?? "–"} m`,
+  "water-plane": () => "water plane: no quay points near the clicks",
+};
+const SOURCE_TEXT = { recording: "from the recording", ned: "from the plan", typed: "typed in", image: "from the video" };
 
 export class Panel {
   constructor(root) {
     this.el = (id) => root.querySelector(`#${id}`);
     this.card = this.el("berth");
-    this.limitInput = this.el("limit");
-    this.limitInput.value = localStorage.getItem(LIMIT_KEY) || this.limitInput.value;
-    this.limitInput.addEventListener("change", () => {
-      localStorage.setItem(LIMIT_KEY, this.limitInput.value);
-    });
-    this.alarm = false;
+    this.level = null;
   }
 
-  get limitCms() {
-    const v = parseFloat(this.limitInput.value);
-    return Number.isFinite(v) && v > 0 ? v : 15;
-  }
-
-  /** @returns {boolean} whether an approach-speed alarm is on (never on an untrusted pose: the
-   *  figures are then shown greyed, see status.js) */
+  /** @returns {null | "warning" | "alarm"} the approach alarm level shown (none on an
+   *  untrusted pose: the figures are then greyed, see status.js) */
   update(frame, trusted = true) {
     this.trusted = trusted;
     const pose = frame?.pose;
     const berth = frame?.overlay?.berth;
     this._nav(pose);
     this.card.classList.toggle("unset", !berth);
-    const bow = this._end("bow", berth?.bow_distance_m, berth?.bow_approach_mps);
-    const stern = this._end("stern", berth?.stern_distance_m, berth?.stern_approach_mps);
-    this.alarm = bow || stern;
-    return this.alarm;
+    const levels = {};
+    for (const a of frame?.alarms || []) {
+      if (a.kind.startsWith("approach-")) levels[a.kind.slice(9)] = a.severity;
+    }
+    const bow = this._end("bow", berth, trusted ? levels.bow : null);
+    const stern = this._end("stern", berth, trusted ? levels.stern : null);
+    this._more(berth);
+    this.level = [bow, stern].includes("alarm") ? "alarm" : [bow, stern].includes("warning") ? "warning" : null;
+    return this.level;
   }
 
-  _end(name, distance, approach) {
+  _end(name, berth, level) {
     const d = this.el(`${name}-dist`);
     const s = this.el(`${name}-speed`);
-    d.innerHTML = distance == null ? "–" : `${distance.toFixed(2)}<span class="unit">m</span>`;
+    const distance = berth?.[`${name}_distance_m`];
+    const sigma = berth?.[`${name}_distance_sigma_m`];
+    d.innerHTML = distance == null ? "–"
+      : `${fmtDistance(distance)}<span class="unit">m</span><span class="dir">${fmtSigma(sigma)}</span>`;
+    const approach = berth?.[`${name}_approach_mps`];
+    s.classList.toggle("alarm", level === "alarm");
+    s.classList.toggle("warning", level === "warning");
     if (approach == null) {
       s.innerHTML = "–";
-      s.classList.remove("alarm");
       s.title = "";
-      return false;
+      return null;
     }
     const cms = approach * 100;
     // positive = closing the berth; the arrow says which way without reading a sign
@@ -53,9 +72,29 @@ export class Panel {
     s.innerHTML = `${arrow}${Math.abs(cms).toFixed(0)}<span class="unit">cm/s</span>`
       + `<span class="dir">${dir}</span>`;
     s.title = cms > 0 ? "closing the berth line" : "opening from the berth line";
-    const alarm = this.trusted && cms > this.limitCms;
-    s.classList.toggle("alarm", alarm);
-    return alarm;
+    return level || null;
+  }
+
+  _more(berth) {
+    const set = (id, html) => { this.el(id).innerHTML = html; };
+    if (!berth) {
+      for (const id of ["along", "angle", "ttc"]) set(id, "–");
+      this.el("berth-method").textContent = "no line";
+      return;
+    }
+    const along = berth.along_berth_mps;
+    set("along", along == null ? "–" : `${Math.abs(along * 100).toFixed(0)}<span class="unit">cm/s ${along >= 0 ? "fwd" : "aft"}</span>`);
+    const angle = berth.angle_deg;
+    set("angle", angle == null ? "–" : `${Math.abs(angle).toFixed(1)}<span class="unit">° ${Math.abs(angle) < 0.5 ? "" : angle > 0 ? "bow in" : "stern in"}</span>`);
+    const ttc = berth.time_to_contact_s;
+    set("ttc", ttc == null ? "none" : ttc >= 600 ? "&gt;10<span class=\"unit\">min</span>"
+      : ttc >= 60 ? `${Math.floor(ttc / 60)}:${String(Math.round(ttc % 60)).padStart(2, "0")}<span class="unit">min</span>`
+        : `${ttc.toFixed(0)}<span class="unit">s</span>`);
+    const info = this.el("berth-method");
+    const how = METHOD_TEXT[berth.method]?.(berth) ?? SOURCE_TEXT[berth.source] ?? "";
+    info.textContent = how;
+    info.title = berth.note || "";
+    info.classList.toggle("warn", berth.method === "water-plane");
   }
 
   _nav(pose) {
@@ -72,5 +111,57 @@ export class Panel {
     const side = Math.abs(rot) < 0.5 ? "" : rot > 0 ? " S" : " P";
     set("rot", `${Math.abs(rot).toFixed(0)}<span class="unit">°/min${side}</span>`);
     set("cog", pose.course_deg == null ? "–" : `${pose.course_deg.toFixed(1)}<span class="unit">°</span>`);
+  }
+}
+
+/** The approach-limit table editor (rows of the session's ApproachLimits). */
+export class Limits {
+  constructor(root, { load, save }) {
+    this.body = root.querySelector("#limits-body");
+    this.now = root.querySelector("#limit-now");
+    this.rows = [];
+    this.load = load;
+    root.querySelector("#limits-save").addEventListener("click", async () => {
+      const rows = [...this.body.querySelectorAll("tr")].map((tr) => {
+        const [w, a, r] = [...tr.querySelectorAll("input")].map((i) => parseFloat(i.value));
+        return { within_m: w, warning_cms: a, alarm_cms: r };
+      }).filter((r) => Number.isFinite(r.within_m) && r.within_m > 0);
+      const out = await save({ rows });
+      if (out) { this.show(out.rows); this.update(this.berth); }
+    });
+  }
+
+  async refresh() {
+    const out = await this.load();
+    if (out) this.show(out.rows);
+  }
+
+  show(rows) {
+    this.rows = rows;
+    // one spare empty row to add a band
+    const all = [...rows, { within_m: "", warning_cms: "", alarm_cms: "" }];
+    this.body.replaceChildren(...all.map((r) => {
+      const tr = document.createElement("tr");
+      for (const key of ["within_m", "warning_cms", "alarm_cms"]) {
+        const td = document.createElement("td");
+        const input = Object.assign(document.createElement("input"), {
+          type: "number", min: "0", step: "any", value: String(r[key]),
+        });
+        input.dataset.key = key;
+        td.append(input);
+        tr.append(td);
+      }
+      return tr;
+    }));
+  }
+
+  /** The limits that apply at the ship's present distance, next to the table's title. */
+  update(berth) {
+    this.berth = berth;
+    const d = berth ? Math.min(berth.bow_distance_m ?? Infinity, berth.stern_distance_m ?? Infinity) : Infinity;
+    const row = this.rows.filter((r) => d < r.within_m).sort((a, b) => a.within_m - b.within_m)[0];
+    this.now.textContent = !berth ? "" : row
+      ? `— now ${row.warning_cms.toFixed(0)}/${row.alarm_cms.toFixed(0)} cm/s (within ${row.within_m} m)`
+      : "— none at this distance";
   }
 }

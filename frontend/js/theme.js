@@ -22,6 +22,10 @@ function read() {
     planGrid: get("--cv-plan-grid"),
     planText: get("--cv-plan-text"),
     frustum: get("--cv-frustum"),
+    hull: get("--cv-hull"),
+    untrusted: get("--cv-untrusted"),
+    other: get("--cv-point-other"),
+    bands: [0, 1, 2, 3, 4, 5, 6].map((i) => get(`--cv-band-${i}`)),
     pointAlpha: parseFloat(get("--cv-point-alpha")) || 1,
     night: document.documentElement.dataset.theme === "night",
   };
