@@ -176,7 +176,7 @@ def _wait(page, condition: str, timeout_s: float, value: str = "true"):
     fails at once with the server's message rather than after the timeout."""
     try:
         handle = page.wait_for_function(
-            f"() => {{ const b = window.berthing, f = b.frame; "
+            f"() => {{ const b = window.berthing; if (!b) return false; const f = b.frame; "
             f"if (b.session && b.session.state === 'error') return {{error: b.session.error}}; "
             f"return ({condition}) ? {{value: {value}}} : false; }}",
             timeout=timeout_s * 1000)
