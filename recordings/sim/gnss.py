@@ -1,4 +1,5 @@
-"""GNSS observables of the four compass receivers (SPEC sections 2, 4, 8).
+"""GNSS observables of the four compass receivers (the sensors of thesis table 15 and fig. 10,
+``docs/references.md``).
 
 Physics per antenna i, satellite k, receiver time tag t (all four receivers share ONE clock):
     P = rho + c (dt_rx - dt_sat) + I + T + d_i + mp_code + noise              [m]

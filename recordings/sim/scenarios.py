@@ -1,4 +1,5 @@
-"""Scenario definitions for the berthing simulator (SPEC sections 2 and 8).
+"""Scenario definitions for the berthing simulator (sensors as in thesis table 15,
+``docs/references.md``).
 
 World frame of the simulator = the reference local-level frame (NED) at ``origin_llh``.
 The sea surface is the plane down = 0. The quay face is the vertical plane north = 0 between
