@@ -17,16 +17,19 @@ from fastapi import FastAPI, Request
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
+from engine.driver import EngineFactory, create_engine
+from recordings import DEFAULT_RECORDING
+
 from . import routes_recordings, routes_sessions, routes_targets, routes_viewer
-from .engine import EngineFactory, create_engine
+from .catalog import RecordingCatalog
+from .errors import ApiError
 from .models import ServerInfo
-from .sessions import ApiError, RecordingCatalog, Session, SessionManager
+from .sessions import Session, SessionManager
 
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parent.parent
 FRONTEND_DIR = ROOT / "frontend"
-DEFAULT_RECORDING = ROOT / "recordings" / "default"
 VERSION = "0.1.0"
 
 

@@ -12,11 +12,12 @@ import os
 import sys
 from pathlib import Path
 
+from recordings import DEFAULT_RECORDING
+
 # The estimator's matrices are small (~40 states): a multi-threaded BLAS costs far more in
 # thread hand-offs than it gains, and starves the VO on a 2-core machine. Set before numpy loads.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-DEFAULT_RECORDING = Path(__file__).resolve().parent.parent / "recordings" / "default"
 
 
 def _recording_arg(value: str | None) -> Path:
@@ -94,13 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="directory whose recordings (sub-directories) can be replayed too")
     p.set_defaults(func=cmd_serve)
 
-    from backend.reports.baseline import add_baseline_parser
-    from backend.reports.compass import add_compass_parser
-    from backend.reports.replay import add_replay_parser
+    from evaluation.cli import add_parsers
 
-    add_baseline_parser(sub)
-    add_compass_parser(sub)
-    add_replay_parser(sub)
+    add_parsers(sub)
     return parser
 
 

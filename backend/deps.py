@@ -6,8 +6,9 @@ from typing import Annotated, Any
 
 from fastapi import Depends, Path, Request
 
+from .catalog import RecordingCatalog
 from .models import ErrorResponse
-from .sessions import RecordingCatalog, Session, SessionManager
+from .sessions import Session, SessionManager
 
 
 def get_catalog(request: Request) -> RecordingCatalog:

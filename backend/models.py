@@ -397,6 +397,8 @@ class BerthReadout(BaseModel):
     bow_approach_mps: float | None
     stern_approach_mps: float | None
     polylines: list[list[Vec2]]
+    source: Literal["recording", "ned", "image"] | None = Field(
+        None, description="where the line came from")
 
 
 class Overlay(BaseModel):

@@ -1,4 +1,4 @@
-"""The berthing overlay of one video frame (SPEC section 6), as plain JSON-ready data.
+"""The berthing overlay of one video frame (thesis 5.3, figs. 32–33), as plain JSON-ready data.
 
 Pure functions of a fused state, the calibration, the hull and what the session knows (port
 structure, targets, berth line): the browser only draws what it gets. Everything drawn on the
@@ -17,19 +17,13 @@ from typing import Any
 
 import numpy as np
 
+from engine.camera import CameraPose, Projector, camera_pose
 from estimator.frames import wrap_angle
 from estimator.landmarks import converged
 from estimator.prediction import predict_outlines
 from estimator.records import CameraCalibration, Hull
 
-from .geometry import (
-    CameraPose,
-    Projector,
-    berth_metrics,
-    camera_pose,
-    hue_color,
-    hull_outline_ne,
-)
+from .geometry import berth_metrics, hue_color, hull_outline_ne
 
 GRID_CELL_M = 2.0
 MAX_OVERLAY_POINTS = 1500  # nearest visible structure points drawn on the video
@@ -193,7 +187,19 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
         "radius_m": radius,
     }
 
-    # port structure: visible points on the video, nearby points in plan, same colours
+    _structure_points(video, plan, projector, pose, structure, ship_ne, radius, color_range)
+    _predictions(video, plan, projector, pose, state, hull, config.prediction_seconds, water)
+    target_out = _targets(plan, projector, pose, state, hull, targets)
+    berth = _berth(plan, projector, pose, state, hull, berth_line_ne, water)
+    return {"video": video, "birdseye": plan, "targets": target_out, "berth": berth,
+            "color_range_m": color_range}
+
+
+def _structure_points(video: dict[str, Any], plan: dict[str, Any], projector: Projector,
+                      pose: CameraPose,
+                      structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+                      ship_ne: np.ndarray, radius: float, color_range: float) -> None:
+    """Port structure: visible points on the video, nearby points in plan, same colours."""
     pts = np.zeros((0, 3))
     sigma = np.zeros(0)
     ids = np.zeros(0, dtype=int)
@@ -225,17 +231,22 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
                                                                          color_range),
                       "converged": trusted[near].tolist()}
 
-    # predicted hull outlines at the water line, 1..N s ahead
-    outlines = predict_outlines(state, hull, config.prediction_seconds)
+
+def _predictions(video: dict[str, Any], plan: dict[str, Any], projector: Projector,
+                 pose: CameraPose, state: Any, hull: Hull, seconds: int, water: float) -> None:
+    """Predicted hull outlines at the water line, 1..N s ahead."""
     video["prediction"] = []
     plan["prediction"] = []
-    for k, ne in enumerate(outlines, start=1):
+    for k, ne in enumerate(predict_outlines(state, hull, seconds), start=1):
         polygon = np.column_stack([ne, np.full(len(ne), water)])
         video["prediction"].append({"seconds": k, "polylines": [
             _round(line, 1) for line in projector.project_polygon(pose, polygon)]})
         plan["prediction"].append({"seconds": k, "ne": _round(ne, 3)})
 
-    # designated targets
+
+def _targets(plan: dict[str, Any], projector: Projector, pose: CameraPose, state: Any,
+             hull: Hull, targets: Sequence[TargetInput]) -> list[dict[str, Any]]:
+    """The designated targets' readouts (and their places in plan)."""
     target_out = []
     plan["targets"] = []
     if targets:
@@ -248,21 +259,24 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
                          uv=_round(t_uv[i], 1) if t_visible[i] else None)
             target_out.append(entry)
             plan["targets"].append({"id": target.id, "ne": _round(target.position_ned[:2], 3)})
+    return target_out
 
-    # berth line: drawn on the water plane, bow/stern distance and approach speed
-    berth = None
+
+def _berth(plan: dict[str, Any], projector: Projector, pose: CameraPose, state: Any,
+           hull: Hull, berth_line_ne: np.ndarray | None, water: float
+           ) -> dict[str, Any] | None:
+    """Berth line drawn on the water plane, bow/stern distance and approach speed."""
     plan["berth_line"] = None
-    if berth_line_ne is not None:
-        line = np.asarray(berth_line_ne, dtype=float).reshape(2, 2)
-        line3 = np.column_stack([line, np.full(2, water)])
-        berth = {key: (None if val is None else round(val, 3))
-                 for key, val in berth_metrics(state, hull, line).items()}
-        berth["polylines"] = [_round(p, 1) for p in projector.project_segments(
-            pose, line3[:1], line3[1:])]
-        plan["berth_line"] = _round(line, 3)
-
-    return {"video": video, "birdseye": plan, "targets": target_out, "berth": berth,
-            "color_range_m": color_range}
+    if berth_line_ne is None:
+        return None
+    line = np.asarray(berth_line_ne, dtype=float).reshape(2, 2)
+    line3 = np.column_stack([line, np.full(2, water)])
+    berth: dict[str, Any] = {key: (None if val is None else round(val, 3))
+                             for key, val in berth_metrics(state, hull, line).items()}
+    berth["polylines"] = [_round(p, 1) for p in projector.project_segments(
+        pose, line3[:1], line3[1:])]
+    plan["berth_line"] = _round(line, 3)
+    return berth
 
 
 def target_readout(position_ned: np.ndarray, pose: CameraPose, ship_outline_ne: np.ndarray

@@ -24,16 +24,15 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Protocol
 
 import numpy as np
 
-from engine.messages import FrameMessage, GnssMessage, ImuMessage, SensorMessage, sensor_messages
+from engine.driver import FusionEngine, dispatch
+from engine.messages import FrameMessage, SensorMessage, sensor_messages
 from recordings.format import Recording
-
-from .engine import FusionEngine
 
 log = logging.getLogger(__name__)
 
@@ -64,17 +63,6 @@ def snapshot(engine: FusionEngine, shared: tuple[Any, ...] = ()) -> FusionEngine
         elif hasattr(obj, "__dict__"):
             stack.extend(vars(obj).values())
     return copy.deepcopy(engine, memo)
-
-
-def dispatch(engine: FusionEngine, msg: SensorMessage) -> Any | None:
-    """Feed one message to the engine; the fused state for a frame, else None."""
-    if isinstance(msg, ImuMessage):
-        engine.process_imu(msg.t, msg.gyro, msg.accel)
-        return None
-    if isinstance(msg, GnssMessage):
-        engine.process_gnss(msg.t, list(msg.epochs))
-        return None
-    return engine.process_frame(msg.t, msg.image)
 
 
 # ----------------------------------------------------------------------------- replayer
@@ -116,6 +104,18 @@ class FrameSink(Protocol):
 class _Checkpoint:
     t: float  # gpst of the frame after which the engine was copied
     engine: FusionEngine
+
+
+@dataclass
+class _Loop:
+    """The replay thread's working state."""
+
+    engine: FusionEngine | None = None
+    messages: Iterator[SensorMessage] = field(default_factory=lambda: iter(()))
+    pending: SensorMessage | None = None  # taken from the iterator, not yet processed
+    target: float | None = None  # gpst the current fast-forward runs to
+    anchor: tuple[float, float] | None = None  # (wall, gpst) of the pacing clock
+    notified: ReplayState | None = None  # the state the sink was last told
 
 
 class Replayer:
@@ -263,98 +263,115 @@ class Replayer:
     def _run(self) -> None:
         # The sink is only ever called with the condition released: its callbacks take the
         # session's lock, and API threads holding that lock read this replayer's status.
-        notified: ReplayState | None = None
-        engine: FusionEngine | None = None
-        messages: Iterator[SensorMessage] = iter(())
-        pending: SensorMessage | None = None  # taken from the iterator, not yet processed
-        target: float | None = None  # gpst the current fast-forward runs to
-        anchor: tuple[float, float] | None = None  # (wall, gpst) of the pacing clock
+        loop = _Loop()
         try:
-            engine = self._make_engine()
-            messages = sensor_messages(self.rec)
+            loop.engine = self._make_engine()
+            loop.messages = sensor_messages(self.rec)
         except Exception as exc:
             log.exception("cannot start the replay")
             self._fail(f"cannot start the fusion engine: {exc}")
         while True:
-            goal: float | None = None
-            restart = False
-            with self._cond:
-                if self._stop:
-                    self._state = ReplayState.STOPPED
-                elif self._seek_to is not None:
-                    goal, self._seek_to = self._seek_to, None
-                    restart = (goal < self._t or engine is None
-                               or self._state == ReplayState.ERROR)
-                    self._error = None
-                    self._state = ReplayState.SEEKING
-                elif target is not None:
-                    self._state = ReplayState.SEEKING
-                elif self._state not in (ReplayState.ENDED, ReplayState.ERROR):
-                    self._state = ReplayState.PLAYING if self._playing else ReplayState.PAUSED
-                state, speed = self._state, self._speed
-            if state != notified:
+            state, speed, goal, restart = self._command(loop)
+            if state != loop.notified:
                 self._sink.on_state(state)
-                notified = state
+                loop.notified = state
             if state == ReplayState.STOPPED:
                 return
             if goal is not None:
-                target, anchor = goal, None
-                if restart:
-                    pending = None
-                    try:
-                        engine, messages = self._restart(goal)
-                    except Exception as exc:
-                        log.exception("cannot restart the replay")
-                        self._fail(f"cannot restart the fusion engine: {exc}")
-                        target = None
-                        continue
+                loop.target, loop.anchor = goal, None
+                if restart and not self._restart_loop(loop, goal):
+                    continue
             with self._cond:
-                if target is None and self._idle():
-                    anchor = None
+                if loop.target is None and self._idle():
+                    loop.anchor = None
                     self._cond.wait()
                     continue
-            if pending is None:
-                try:
-                    pending = next(messages)
-                except StopIteration:
-                    with self._cond:
-                        self._state = ReplayState.ENDED
-                    target = None
-                    continue
-                except Exception as exc:  # a broken video or file while replaying
-                    log.exception("replay input failed")
-                    self._fail(f"reading the recording failed: {exc}")
-                    target = None
-                    continue
-            msg = pending
-            if target is None and speed is not None:
-                anchor = self._pace(msg.t, speed, anchor)
-                if anchor is None:  # a command arrived while waiting: handle it first
-                    continue
-            pending = None
-            assert engine is not None
-            try:
-                fused = dispatch(engine, msg)
-            except Exception as exc:
-                log.exception("fusion engine failed at t=%.3f", msg.t)
-                self._fail(f"fusion engine failed at gpst {msg.t:.3f}: {exc!r}")
-                target = None
+            msg = self._next_message(loop)
+            if msg is None:
                 continue
-            with self._cond:
-                self._t = msg.t
-                if isinstance(msg, FrameMessage):
-                    self._frames += 1
-            if not isinstance(msg, FrameMessage):
-                continue
-            live = target is None or msg.t >= target
+            if loop.target is None and speed is not None:
+                loop.anchor = self._pace(msg.t, speed, loop.anchor)
+                if loop.anchor is None:  # a command arrived while waiting: handle it first
+                    continue
+            loop.pending = None
+            self._process(loop, msg)
+
+    def _command(self, loop: _Loop) -> tuple[ReplayState, float | None, float | None, bool]:
+        """The state the commands put the replay in: (state, speed, seek goal, whether the
+        engine restarts for it)."""
+        goal: float | None = None
+        restart = False
+        with self._cond:
+            if self._stop:
+                self._state = ReplayState.STOPPED
+            elif self._seek_to is not None:
+                goal, self._seek_to = self._seek_to, None
+                restart = (goal < self._t or loop.engine is None
+                           or self._state == ReplayState.ERROR)
+                self._error = None
+                self._state = ReplayState.SEEKING
+            elif loop.target is not None:
+                self._state = ReplayState.SEEKING
+            elif self._state not in (ReplayState.ENDED, ReplayState.ERROR):
+                self._state = ReplayState.PLAYING if self._playing else ReplayState.PAUSED
+            return self._state, self._speed, goal, restart
+
+    def _restart_loop(self, loop: _Loop, goal: float) -> bool:
+        loop.pending = None
+        try:
+            loop.engine, loop.messages = self._restart(goal)
+        except Exception as exc:
+            log.exception("cannot restart the replay")
+            self._fail(f"cannot restart the fusion engine: {exc}")
+            loop.target = None
+            return False
+        return True
+
+    def _next_message(self, loop: _Loop) -> SensorMessage | None:
+        """The message to process next (kept as pending until it is); None at the end or
+        when the recording cannot be read (the state says which)."""
+        if loop.pending is None:
             try:
-                self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, live,
-                                                time.time()), engine)
-            except Exception:  # what is done with a result must not stop the replay
-                log.exception("frame sink failed at frame %d", msg.index)
-            self._maybe_checkpoint(engine, msg.t)
-            if target is not None and msg.t >= target:
-                target = None  # seek done: playing or paused resumes from here
+                loop.pending = next(loop.messages)
+            except StopIteration:
+                with self._cond:
+                    self._state = ReplayState.ENDED
+                loop.target = None
+                return None
+            except Exception as exc:  # a broken video or file while replaying
+                log.exception("replay input failed")
+                self._fail(f"reading the recording failed: {exc}")
+                loop.target = None
+                return None
+        return loop.pending
+
+    def _process(self, loop: _Loop, msg: SensorMessage) -> None:
+        """One message through the engine; a frame's result to the sink."""
+        engine = loop.engine
+        assert engine is not None
+        try:
+            fused = dispatch(engine, msg)
+        except Exception as exc:
+            log.exception("fusion engine failed at t=%.3f", msg.t)
+            self._fail(f"fusion engine failed at gpst {msg.t:.3f}: {exc!r}")
+            loop.target = None
+            return
+        with self._cond:
+            self._t = msg.t
+            if isinstance(msg, FrameMessage):
+                self._frames += 1
+        if not isinstance(msg, FrameMessage):
+            return
+        target = loop.target
+        live = target is None or msg.t >= target
+        try:
+            self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, live,
+                                            time.time()), engine)
+        except Exception:  # what is done with a result must not stop the replay
+            log.exception("frame sink failed at frame %d", msg.index)
+        self._maybe_checkpoint(engine, msg.t)
+        if target is not None and msg.t >= target:
+            loop.target = None  # seek done: playing or paused resumes from here
 
     def _pace(self, t: float, speed: float, anchor: tuple[float, float] | None
               ) -> tuple[float, float] | None:

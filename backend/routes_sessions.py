@@ -82,7 +82,7 @@ def get_pose(session: SessionDep,
                  ge=0.0, description="s since the recording start; omitted: the current pose. "
                                      "The stored pose of the last frame at or before t.")] = None
              ) -> PoseResponse:
-    state = session.current_state() if t is None else session.state_at(t)
+    state = session.current_state() if t is None else session.history.state_at(t)
     return PoseResponse(**pose_dict(state, session.start_gpst),
                         status=status_dict(state.status))
 
@@ -94,10 +94,10 @@ def get_trajectory(session: SessionDep,
                    format: Annotated[Literal["json", "csv"], Query()] = "json"
                    ) -> Trajectory | Response:
     if format == "csv":
-        return Response(session.trajectory_csv(), media_type="text/csv",
+        return Response(session.history.trajectory_csv(), media_type="text/csv",
                         headers={"Content-Disposition":
                                  f'attachment; filename="{session.name}-{session.id}.csv"'})
-    return Trajectory(**session.trajectory())
+    return Trajectory(session=session.id, **session.history.trajectory())
 
 
 @router.get("/{session_id}/structure", response_model=Structure, responses=errors(404),
@@ -106,7 +106,8 @@ def get_structure(session: SessionDep,
                   max_sigma: Annotated[float | None, Query(
                       gt=0.0, description="only points with sigma <= this (m)")] = None
                   ) -> Structure:
-    (pts, sigma, ids), t = session.structure()
+    s = session.structure()
+    pts, sigma, ids, t = s.points, s.sigma, s.ids, s.t
     if max_sigma is not None and len(sigma) == len(pts):
         keep = sigma <= max_sigma
         pts, sigma, ids = pts[keep], sigma[keep], ids[keep]

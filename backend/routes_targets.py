@@ -16,7 +16,8 @@ from .models import (
 )
 from .models import TargetOut as _TargetOutBase
 from .models import TrackPoint as _TrackPointBase
-from .sessions import Session, Target
+from .sessions import Session
+from .targets import Target
 
 router = APIRouter(prefix="/api/sessions/{session_id}", tags=["targets"])
 
@@ -76,7 +77,7 @@ def _target_out(session: Session, target: Target) -> dict:
         "reason": target.reason,
         "distance_sigma_m": None if target.distance_sigma_m is None else round(
             float(target.distance_sigma_m), 3),
-        "views": 0 if target.tracker is None else target.tracker.refined_views,
+        "views": target.views,
     }
 
 
@@ -106,14 +107,14 @@ def create_target(body: TargetCreate, session: SessionDep) -> TargetOut:
             summary="Designated targets")
 def list_targets(session: SessionDep) -> TargetList:
     with session.lock:
-        outs = [_target_out(session, t) for t in session.targets()]
+        outs = [_target_out(session, t) for t in session.targets.all()]
     return TargetList(targets=[TargetOut(**o) for o in outs])
 
 
 @router.get("/targets/{target_id}", response_model=TargetDetail, responses=errors(404),
             summary="A target with its track over time")
 def get_target(target_id: str, session: SessionDep) -> TargetDetail:
-    target = session.target(target_id)
+    target = session.targets.get(target_id)
     with session.lock:
         track = [TrackPoint(**p) for p in target.track]
         out = _target_out(session, target)

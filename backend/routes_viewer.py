@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 
 from .deps import ManagerDep, errors, get_viewer
+from .errors import Conflict
 from .models import Viewer, ViewerFollow
-from .sessions import Conflict
 
 router = APIRouter(prefix="/api/viewer", tags=["viewer"])
 

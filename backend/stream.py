@@ -38,7 +38,8 @@ import time
 
 from fastapi import WebSocket
 
-from .sessions import ApiError, Session, SessionManager
+from .errors import ApiError
+from .sessions import Session, SessionManager
 
 
 class LatestSlot:

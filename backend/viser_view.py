@@ -1,4 +1,4 @@
-"""Free-viewpoint 3-D view of a session in viser (SPEC section 6).
+"""Free-viewpoint 3-D view of a session in viser (thesis fig. 34).
 
 Scene (local-level NED at the world origin, near the berth, so float32 on the wire is at most
 a few hundred metres from zero; the scene's up direction is -z = up):
@@ -117,7 +117,7 @@ class ViserView:
             self._draw_reference(session)
             self._last_consolidation = 0.0
             self._update_structure(session, time.monotonic())
-            state = session.latest_state()
+            state = session.history.latest()
             if state is not None:
                 self._update_pose(state)
 
@@ -207,7 +207,7 @@ class ViserView:
         old = self._nodes.pop("reference", None)
         if old is not None:
             old.remove()
-        aligned = session.reference_alignment()
+        aligned = session.history.reference_alignment()
         if aligned is None or session.rec.reference is None:
             return
         ref = session.rec.reference.position_ned[::10] - aligned[1]  # 10 Hz is plenty
@@ -274,14 +274,15 @@ class ViserView:
         if tail is not None:
             tail.remove()
         self._tail, self._path_last = [], None
-        _times, positions = session.history_arrays()
+        _times, positions = session.history.arrays()
         for p in positions:
             self._append_path(p)
 
     # structure: new ids appended in chunks, consolidated now and then
 
     def _update_structure(self, session: Session, now: float) -> None:
-        (pts, _sigma, ids), _t = session.structure()
+        structure = session.structure()
+        pts, ids = structure.points, structure.ids
         if len(pts) == 0:
             return
         ids = np.asarray(ids)

@@ -39,7 +39,8 @@ DEFAULT_RECORDING = ROOT / "recordings" / "default"
 
 
 def replay_speed(path: Path, seconds: float | None = None) -> dict:
-    from engine.messages import FrameMessage, GnssMessage, ImuMessage, sensor_messages
+    from engine.driver import dispatch
+    from engine.messages import FrameMessage, GnssMessage, sensor_messages
     from estimator.pipeline import Fusion
     from recordings.format import load
 
@@ -52,26 +53,18 @@ def replay_speed(path: Path, seconds: float | None = None) -> dict:
     frame_ms: list[float] = []
     counts = {"imu": 0, "gnss": 0, "frame": 0}
     first = last = None
-    messages = sensor_messages(rec)
+    messages = sensor_messages(rec, until=end)
     wall0 = time.perf_counter()
     tic = wall0
     for msg in messages:
         got = time.perf_counter()
         spent["decode+merge"] += got - tic
-        if msg.t > end:
-            break
         first = msg.t if first is None else first
         last = msg.t
-        if isinstance(msg, ImuMessage):
-            fusion.process_imu(msg.t, msg.gyro, msg.accel)
-            stage, kind = "process_imu", "imu"
-        elif isinstance(msg, GnssMessage):
-            fusion.process_gnss(msg.t, list(msg.epochs))
-            stage, kind = "process_gnss", "gnss"
-        else:
-            assert isinstance(msg, FrameMessage)
-            fusion.process_frame(msg.t, msg.image)
-            stage, kind = "process_frame", "frame"
+        dispatch(fusion, msg)  # the server's own step
+        kind = "frame" if isinstance(msg, FrameMessage) else \
+            "gnss" if isinstance(msg, GnssMessage) else "imu"
+        stage = f"process_{kind}"
         tic = time.perf_counter()
         spent[stage] += tic - got
         counts[kind] += 1

@@ -60,29 +60,35 @@ def group_gnss(rec: Recording) -> list[GnssMessage]:
     return [GnssMessage(times[key], tuple(tags[key])) for key in sorted(tags)]
 
 
-def sensor_messages(rec: Recording, after: float | None = None) -> Iterator[SensorMessage]:
-    """All sensor messages of ``rec`` in time order, those strictly after ``after`` (gpst)
-    when given. Frames are decoded lazily, one at a time."""
+def sensor_messages(rec: Recording, after: float | None = None, until: float | None = None,
+                    frames: bool = True) -> Iterator[SensorMessage]:
+    """All sensor messages of ``rec`` in time order: those strictly after ``after`` and at or
+    before ``until`` (gpst) when given; without ``frames``, IMU and GNSS only. Frames are
+    decoded lazily, one at a time."""
     lo = -np.inf if after is None else after
+    hi = np.inf if until is None else until
 
     def imu() -> Iterator[tuple[float, int, int, SensorMessage]]:
         data = rec.imu
         first = int(np.searchsorted(data.time, lo, side="right"))
-        for i in range(first, len(data.time)):
+        last = int(np.searchsorted(data.time, hi, side="right"))
+        for i in range(first, last):
             t = float(data.time[i])
             yield t, _IMU, i, ImuMessage(t, data.gyro[i], data.accel[i])
 
     def gnss() -> Iterator[tuple[float, int, int, SensorMessage]]:
         for i, msg in enumerate(group_gnss(rec)):
-            if msg.t > lo:
+            if lo < msg.t <= hi:
                 yield msg.t, _GNSS, i, msg
 
-    def frames() -> Iterator[tuple[float, int, int, SensorMessage]]:
+    def video() -> Iterator[tuple[float, int, int, SensorMessage]]:
         first = int(np.searchsorted(rec.frame_times, lo, side="right"))
-        if first >= len(rec.frame_times):
+        if not frames or first >= len(rec.frame_times):
             return
         for index, t, image in rec.frames(first):
+            if t > hi:
+                return
             yield t, _FRAME, index, FrameMessage(t, index, image)
 
-    for _t, _kind, _i, msg in heapq.merge(imu(), gnss(), frames(), key=lambda m: m[:3]):
+    for _t, _kind, _i, msg in heapq.merge(imu(), gnss(), video(), key=lambda m: m[:3]):
         yield msg

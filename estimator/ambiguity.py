@@ -1,4 +1,4 @@
-"""Integer ambiguity resolution by the LAMBDA method (Teunissen), SPEC section 4.
+"""Integer ambiguity resolution by the LAMBDA method (Teunissen; thesis 3.2.2).
 
 Given a float ambiguity vector ``â`` (cycles) with covariance ``Q``, the integer least-squares
 solution minimises ``(a - â)ᵀ Q⁻¹ (a - â)`` over integer vectors ``a``. The steps are:
@@ -273,22 +273,7 @@ def _search(
             if k > 0:
                 descend = True
                 continue
-            # A full integer vector inside the current ellipsoid.
-            if collect_all:
-                found.append((new_dist, z.copy()))
-                if len(found) > limit:
-                    raise CandidateLimitError(
-                        f"more than {limit} integer vectors inside the ellipsoid "
-                        f"(chi2 = {radius:g}); lower chi2 or raise the limit"
-                    )
-            elif len(found) < n_best:
-                found.append((new_dist, z.copy()))
-                if len(found) == n_best:
-                    max_dist = min(radius, max(f[0] for f in found))
-            else:
-                worst = max(range(n_best), key=lambda i: found[i][0])
-                found[worst] = (new_dist, z.copy())
-                max_dist = min(radius, max(f[0] for f in found))
+            max_dist = _keep(found, new_dist, z, n_best, radius, limit, max_dist)
             descend = False
         else:
             # Every further integer of this level is farther away: back to the level above.
@@ -300,6 +285,24 @@ def _search(
     found.sort(key=lambda f: f[0])
     cands = np.array([f[1] for f in found], dtype=np.int64).reshape(len(found), n)
     return cands, np.array([f[0] for f in found], dtype=float)
+
+
+def _keep(found: list[tuple[float, list[int]]], dist: float, z: list[int], n_best: int,
+          radius: float, limit: int | None, max_dist: float) -> float:
+    """A full integer vector inside the current ellipsoid joins ``found`` (all of them up to
+    ``limit``, else the ``n_best`` nearest); returns the ellipsoid's new squared radius."""
+    if limit is not None:
+        found.append((dist, z.copy()))
+        if len(found) > limit:
+            raise CandidateLimitError(f"more than {limit} integer vectors inside the ellipsoid "
+                                      f"(chi2 = {radius:g}); lower chi2 or raise the limit")
+        return max_dist
+    if len(found) < n_best:
+        found.append((dist, z.copy()))
+        return min(radius, max(f[0] for f in found)) if len(found) == n_best else max_dist
+    worst = max(range(n_best), key=lambda i: found[i][0])
+    found[worst] = (dist, z.copy())
+    return min(radius, max(f[0] for f in found))
 
 
 def integer_search(

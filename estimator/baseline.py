@@ -1,4 +1,4 @@
-"""Relative positioning of two receivers by double differences (thesis 3.2.2, SPEC section 4).
+"""Relative positioning of two receivers by double differences (thesis 3.2.2).
 
 The conventional carrier-phase method: a float Kalman filter over epochs whose states are the
 baseline ``b = r_B − r_A`` (local NED) and one float single-difference ambiguity per satellite,
@@ -32,6 +32,7 @@ from .cpp import (
     EpochGeometry,
     detect_cycle_slips,
     epoch_geometry,
+    sd_sigma,
 )
 from .frames import SPEED_OF_LIGHT
 from .records import GnssEpoch, NavigationData
@@ -78,10 +79,6 @@ class BaselineFix:
     @property
     def length(self) -> float:
         return float(np.linalg.norm(self.baseline_ned))
-
-
-def _sd_sigma(base_sigma: float, elevation: float) -> float:
-    return math.sqrt(2.0) * base_sigma / max(math.sin(elevation), 0.1)
 
 
 class DoubleDifferenceFilter:
@@ -140,7 +137,7 @@ class DoubleDifferenceFilter:
         # Phase minus code: clocks and geometry cancel, the ambiguity (± code noise) remains.
         if math.isfinite(sd.code_m):
             a0 = (sd.phase_m - sd.code_m) / sd.wavelength
-            var = (3.0 * _sd_sigma(self.code_sigma, sd.elevation) / sd.wavelength) ** 2
+            var = (3.0 * sd_sigma(sd.elevation, self.code_sigma) / sd.wavelength) ** 2
         else:
             a0 = (sd.phase_m - sd.los_ned @ self.x[:3]) / sd.wavelength
             var = (self.baseline_sigma * 2.0 / sd.wavelength) ** 2
@@ -193,8 +190,8 @@ class DoubleDifferenceFilter:
             D[i, idx[s] - 3] = 1.0
             D[i, idx[ref] - 3] = -1.0
         order = self.sats
-        var_phase = np.array([_sd_sigma(self.phase_sigma, by_sat[s].elevation) ** 2 for s in order])
-        var_code = np.array([_sd_sigma(self.code_sigma, by_sat[s].elevation) ** 2 for s in order])
+        var_phase = np.array([sd_sigma(by_sat[s].elevation, self.phase_sigma) ** 2 for s in order])
+        var_code = np.array([sd_sigma(by_sat[s].elevation, self.code_sigma) ** 2 for s in order])
         H_phase = np.zeros((n, m))
         y_phase = np.zeros(n)
         for i, s in enumerate(others):

@@ -1,4 +1,4 @@
-"""GNSS compass attitude from four antennas on a 10 cm square (thesis ch. 4, SPEC section 4).
+"""GNSS compass attitude from four antennas on a 10 cm square (thesis ch. 4; ``METHOD.md``).
 
 Attitude determination = integer ambiguity resolution of the carrier-phase differences on the
 six short baselines ``b_ij = r_j − r_i`` (pairs ``BASELINE_PAIRS``). Two resolution methods:
@@ -46,6 +46,7 @@ from .cpp import (
     SAME_CARRIER_SYSTEMS,
     EpochGeometry,
     detect_cycle_slips,
+    elevation_sigma,
     epoch_geometry,
 )
 from .frames import SPEED_OF_LIGHT, dcm_to_euler, euler_to_dcm, rotvec_to_dcm, wrap_angle
@@ -243,8 +244,7 @@ def double_differences(
     for j in INDEPENDENT:
         for k, s in enumerate(others):
             dd[j - 1, k] = (_sd(epochs, 0, j, s) - _sd(epochs, 0, j, ref))
-    sigma_u = {s: phase_sigma_m / max(math.sin(geometry.satellites[s].elevation), 0.1)
-               for s in sats}
+    sigma_u = {s: elevation_sigma(phase_sigma_m, geometry.satellites[s].elevation) for s in sats}
     rows = [[(0, s, 1.0), (j, s, -1.0), (0, ref, -1.0), (j, ref, 1.0)]
             for j in INDEPENDENT for s in others]
     return DoubleDifferences(time=geometry.time, reference=ref, sats=others, H=H, dd=dd,
@@ -456,6 +456,46 @@ def _heading_candidates(dd: DoubleDifferences, layout: np.ndarray, tilt: tuple[f
     return flat.reshape(len(flat), 3, -1)
 
 
+def _layout_tolerances(dd: DoubleDifferences, layout: np.ndarray,
+                       length_tolerance_m: float | None, angle_tolerance_deg: float | None
+                       ) -> tuple[float, float]:
+    """(length m, angle rad) tolerances of the layout test from the baseline covariance of
+    this epoch (the same for every candidate): 4 σ of the worst direction, at least 1 cm
+    and 6°, unless given."""
+    n = len(dd.sats)
+    block = dd.cov[:n, :n]
+    Cb = np.linalg.inv(dd.H.T @ np.linalg.solve(block, dd.H))
+    sigma_b = math.sqrt(float(np.linalg.eigvalsh(Cb).max()))
+    L = float(np.linalg.norm(layout, axis=1).min())
+    dl = length_tolerance_m if length_tolerance_m is not None else max(0.01, 4.0 * sigma_b)
+    dpsi = (math.radians(angle_tolerance_deg) if angle_tolerance_deg is not None
+            else max(math.radians(6.0), 4.0 * math.sqrt(2.0) * sigma_b / L))
+    return dl, dpsi
+
+
+def _rigid_fits(dd: DoubleDifferences, cands: np.ndarray, idx: np.ndarray,
+                layout: np.ndarray, level: tuple[float, float] | None, sig: float,
+                chi2_quantile: float) -> list[tuple[float, int, AttitudeFit, bool]]:
+    """Rigid fit of the layout to the double differences of each candidate ``idx``, with the
+    IMU tilt ``level`` as a prior of σ ``sig``: its misfit joins the χ² (2 more degrees of
+    freedom). A wrong set that only fits with a strongly tilted (e.g. mirrored) array fails
+    here, while the right one with a weak vertical geometry (few satellites on one side) is
+    held level by the prior. Returns (χ², candidate, fit, passes) sorted by χ²."""
+    dof = 3 * len(dd.sats) - 3 + (2 if level is not None else 0)
+    limit = chi2_dist.ppf(chi2_quantile, dof)
+    fits = []
+    for k in idx:
+        fit = rigid_fit(dd, cands[k], layout, tilt=level, tilt_sigma_rad=sig)
+        chi2 = fit.chi2
+        if level is not None:
+            eul = dcm_to_euler(fit.C_body_to_level)
+            chi2 += float(wrap_angle(eul[0] - level[0]) ** 2 + wrap_angle(eul[1] - level[1]) ** 2
+                          ) / sig**2
+        fits.append((chi2, k, fit, chi2 < limit))
+    fits.sort(key=lambda f: f[0])
+    return fits
+
+
 def resolve_fast(
     dd: DoubleDifferences,
     antennas_body: np.ndarray,
@@ -489,14 +529,7 @@ def resolve_fast(
     b0, chi2_ls = _baseline_ls(dd, cands)
     b6 = _all_baselines(b0)
 
-    # Tolerances from the baseline covariance of this epoch (same for every candidate).
-    block = dd.cov[:n, :n]
-    Cb = np.linalg.inv(dd.H.T @ np.linalg.solve(block, dd.H))
-    sigma_b = math.sqrt(float(np.linalg.eigvalsh(Cb).max()))
-    L = float(np.linalg.norm(layout, axis=1).min())
-    dl = length_tolerance_m if length_tolerance_m is not None else max(0.01, 4.0 * sigma_b)
-    dpsi = (math.radians(angle_tolerance_deg) if angle_tolerance_deg is not None
-            else max(math.radians(6.0), 4.0 * math.sqrt(2.0) * sigma_b / L))
+    dl, dpsi = _layout_tolerances(dd, layout, length_tolerance_m, angle_tolerance_deg)
     geo_ok = check_baseline_geometry(b6, layout, dl, dpsi)
     dof_ls = 3 * (n - 3)
     if dof_ls > 0:
@@ -508,24 +541,8 @@ def resolve_fast(
         result.message = "no candidate passes the baseline length/angle test"
         return result
 
-    # Rigid fit of the layout to the double differences, with the IMU tilt as a prior of σ
-    # ``tilt_sigma``: its misfit joins the χ² (2 more degrees of freedom). A wrong set that
-    # only fits with a strongly tilted (e.g. mirrored) array fails here, while the right one
-    # with a weak vertical geometry (few satellites on one side) is held level by the prior.
-    sig = math.radians(tilt_sigma_deg)
-    dof = 3 * n - 3 + (2 if tilt is not None else 0)
-    limit = chi2_dist.ppf(chi2_quantile, dof)
-    fits = []
-    for k in idx:
-        fit = rigid_fit(dd, cands[k], layout, tilt=None if tilt is None else level,
-                        tilt_sigma_rad=sig)
-        chi2 = fit.chi2
-        if tilt is not None:
-            eul = dcm_to_euler(fit.C_body_to_level)
-            chi2 += float(wrap_angle(eul[0] - level[0]) ** 2 + wrap_angle(eul[1] - level[1]) ** 2
-                          ) / sig**2
-        fits.append((chi2, k, fit, chi2 < limit))
-    fits.sort(key=lambda f: f[0])
+    fits = _rigid_fits(dd, cands, idx, layout, None if tilt is None else level,
+                       math.radians(tilt_sigma_deg), chi2_quantile)
     survivors = [f for f in fits if f[3]]
     result.n_survivors = len(survivors)
     result.ratio = fits[1][0] / max(fits[0][0], 1e-12) if len(fits) > 1 else math.inf
@@ -805,7 +822,7 @@ class GnssCompass:
         elif self.delays is not None and sd_sats:
             zetas = self._zetas(epochs, geo, sd_sats)
             los = {s: geo.los_ned(s) for s in sd_sats}
-            sig = {s: self.phase_sigma / max(math.sin(geo.satellites[s].elevation), 0.1)
+            sig = {s: elevation_sigma(self.phase_sigma, geo.satellites[s].elevation)
                    for s in sd_sats}
             att = attitude_from_single_differences(zetas, los, self.antennas, C_prev,
                                                    tilt=imu_tilt, sigma_u=sig)

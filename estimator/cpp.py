@@ -1,4 +1,4 @@
-"""Carrier-phase processing, the CPP block (thesis fig. 18, SPEC section 4).
+"""Carrier-phase processing, the CPP block (thesis 5.1.1, fig. 18; ``METHOD.md``).
 
 From the raw L1 observations of the compass receivers this module produces:
 
@@ -63,7 +63,7 @@ DEFAULT_SLIP_THRESHOLD = 0.5  # cycles/s, Doppler vs phase rate (real data: 0.06
 DEFAULT_PHASE_SIGMA_M = 0.003  # m, undifferenced carrier phase at zenith (noise + multipath)
 DEFAULT_MAX_INTERVAL_S = 5.0  # longest epoch interval over which phase is differenced
 NORMALISED_RESIDUAL_LIMIT = 4.0
-_MIN_SIN_ELEVATION = 0.1
+MIN_SIN_ELEVATION = 0.1
 
 # ----------------------------------------------------------------------------- epochs
 
@@ -167,8 +167,10 @@ def range_with_ephemeris(eph: KeplerEphemeris | GlonassEphemeris, geo: Geometry,
     return float(np.linalg.norm(pos - np.asarray(receiver_ecef))), st.clock_bias
 
 
-def _sin_el(elevation: float) -> float:
-    return max(math.sin(elevation), _MIN_SIN_ELEVATION)
+def elevation_sigma(sigma_zenith: float, elevation: float) -> float:
+    """σ of a carrier-phase observable at ``elevation`` (rad) from its zenith σ: noise and
+    multipath grow as 1/sin(elevation), floored at ``MIN_SIN_ELEVATION``."""
+    return sigma_zenith / max(math.sin(elevation), MIN_SIN_ELEVATION)
 
 
 # ------------------------------------------------------------------------ cycle slips
@@ -335,7 +337,7 @@ def eta_observations(
             sat_clock = SPEED_OF_LIGHT * (b.sat_clock_bias - clock_a)
             y = d_phase_m - sat_term + sat_clock
             u = -b.line_of_sight
-            sigma = math.sqrt(2.0) * phase_sigma_m / _sin_el(b.elevation) / dt
+            sigma = elevation_sigma(math.sqrt(2.0) * phase_sigma_m, b.elevation) / dt
             rows.append(EtaRow(antenna=i, sat=sat, los_ecef=u, los_ned=g2.C_ecef_to_level @ u,
                                measured=y / dt, sigma=sigma, elevation=b.elevation,
                                time=curr.time, interval=dt))
@@ -743,7 +745,7 @@ def single_differences(epoch_i: GnssEpoch | None, epoch_j: GnssEpoch | None,
 
 def sd_sigma(elevation: float, phase_sigma_m: float = DEFAULT_PHASE_SIGMA_M) -> float:
     """σ (m) of a single difference at ``elevation`` (two independent receivers)."""
-    return math.sqrt(2.0) * phase_sigma_m / _sin_el(elevation)
+    return elevation_sigma(math.sqrt(2.0) * phase_sigma_m, elevation)
 
 
 def estimate_inter_receiver_delay(

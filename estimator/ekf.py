@@ -1,4 +1,5 @@
-"""Error-state EKF of the fusion (thesis 5.1 "EKF block", 5.2 tight coupling; SPEC section 4).
+"""Error-state EKF of the fusion (thesis 5.1 "EKF block", 5.2 tight coupling;
+``METHOD.md``).
 
 State (error = estimate − truth everywhere, as in ``estimator.ins``)::
 
@@ -153,10 +154,6 @@ class EkfConfig:
 @lru_cache(maxsize=64)
 def chi2_gate(dof: int, probability: float) -> float:
     return float(chi2.ppf(probability, dof))
-
-
-def _sin_el(elevation: float) -> float:
-    return max(math.sin(elevation), 0.1)
 
 
 # ------------------------------------------------------------------------------ records

@@ -1,4 +1,4 @@
-"""Frames, rotations, geodesy and time (thesis table 5, SPEC section 3).
+"""Frames, rotations, geodesy and time (thesis table 5; ``METHOD.md``).
 
 Conventions used everywhere in the project:
 - local level L: north, east, down (NED), origin given as geodetic (lat, lon, h);
@@ -204,13 +204,6 @@ def normal_gravity(lat: float, h: float) -> float:
 def earth_rate_level(lat: float) -> np.ndarray:
     """Earth rotation rate expressed in NED (rad/s)."""
     return OMEGA_EARTH * np.array([np.cos(lat), 0.0, -np.sin(lat)])
-
-
-def transport_rate_level(lat: float, h: float, v_ned: np.ndarray) -> np.ndarray:
-    """Rotation rate of NED w.r.t. the Earth caused by moving over it (rad/s)."""
-    r_n, r_e = earth_radii(lat)
-    vn, ve, _ = v_ned
-    return np.array([ve / (r_e + h), -vn / (r_n + h), -ve * np.tan(lat) / (r_e + h)])
 
 
 def elevation_azimuth(receiver_ecef: np.ndarray, sat_ecef: np.ndarray) -> tuple[float, float]:

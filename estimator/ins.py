@@ -1,4 +1,4 @@
-"""INS block (thesis fig. 19, SPEC section 4): strapdown mechanization at the IMU rate.
+"""INS block (thesis 5.1.1, fig. 19; ``METHOD.md``): strapdown mechanization at the IMU rate.
 
 Navigation frame
     ``L`` = the NED tangent frame at ``origin_llh`` (the local-level frame at the world origin
@@ -65,8 +65,6 @@ ACCEL_BIAS_TAU_S = 300.0
 
 _ORTHONORMALIZE_EVERY = 100  # steps; rotvec_to_dcm products drift only at rounding level
 _GRAVITY_REFRESH_M = 1.0  # re-evaluate exact gravity after moving this far (linear in between)
-
-
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -173,11 +171,6 @@ class Ins:
     def omega_body(self) -> np.ndarray:
         """Last calibrated angular rate ω_ib^B (rad/s)."""
         return self._omega.copy()
-
-    @property
-    def specific_force_body(self) -> np.ndarray:
-        """Last calibrated specific force f^B (m/s²)."""
-        return self._f.copy()
 
     @property
     def specific_force_level(self) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Port-structure refinement: one EKF per landmark fed with every view (seed 000, SPEC section 7).
+"""Port-structure refinement: one EKF per landmark fed with every view (seed 000).
 
 Seed 000 estimates the joint state ``X = [x_c, x_l(1:n)]`` (sensor pose and n landmarks, full
 covariance ``P = [[P_c, P_cl], [P_lc, P_l]]``) with an EKF: prediction from odometry, update
@@ -587,11 +587,39 @@ class LandmarkMap:
         z_meas = z_meas[first]
         C = np.asarray(C_level_to_camera, float)
         p = np.asarray(camera_position_ned, float)
+        x, P_new, d2, front = self._filter(rows, z_meas, C, p, pose_cov)
+        accept = front & (d2 <= self._gate)
+        gated = front & ~accept
+        a = rows[accept]
+        self.x[a] = x[accept]
+        self.P[a] = P_new[accept]
+        self.views[a] += 1
+        self.nis[a] += d2[accept]
+        self.strikes[a] = 0
+        self.last_time[a] = float(t)
+        self.last_camera[a] = p
+        if pose_cov is not None:
+            self.floor[a] = np.asarray(pose_cov, float)[:3, :3]
+        g = rows[gated]
+        self.strikes[g] += 1
+        drop = g[self.strikes[g] >= self.params.max_strikes]
+        self.alive[drop] = False
+        out.updated, out.gated, out.dropped = int(accept.sum()), int(gated.sum()), len(drop)
+        self.stats["updated"] += out.updated
+        self.stats["gated"] += out.gated
+        self.stats["dropped"] += out.dropped
+        if self.window is not None:
+            self._to_window(t, C, p, pose_cov, rows, z_meas)
+        return out
+
+    def _filter(self, rows: np.ndarray, z_meas: np.ndarray, C: np.ndarray, p: np.ndarray,
+                pose_cov: np.ndarray | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The (iterated) EKF update of landmark ``rows`` with one view each: (positions,
+        Joseph-form covariances, normalised innovation², in front within the depth limits)."""
         X0, P0 = self.x[rows], self.P[rows]
         n = len(rows)
-        eye2 = np.eye(2)
-        R_pix = (self.params.pixel_sigma_px / self.focal) ** 2 * eye2
-
+        R_pix = (self.params.pixel_sigma_px / self.focal) ** 2 * np.eye(2)
         x = X0.copy()
         R = K = H = None
         front = np.ones(n, bool)
@@ -627,40 +655,23 @@ class LandmarkMap:
                 d2 = np.einsum("ni,nij,nj->n", nu, Si, nu)
                 front &= np.isfinite(d2)
             x = X0 + np.einsum("nij,nj->ni", K, r)
-        accept = front & (d2 <= self._gate)
-        gated = front & ~accept
         IKH = np.eye(3) - K @ H
         P_new = IKH @ P0 @ IKH.transpose(0, 2, 1) + K @ R @ K.transpose(0, 2, 1)
-        P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
-        a = rows[accept]
-        self.x[a] = x[accept]
-        self.P[a] = P_new[accept]
-        self.views[a] += 1
-        self.nis[a] += d2[accept]
-        self.strikes[a] = 0
-        self.last_time[a] = float(t)
-        self.last_camera[a] = p
-        if pose_cov is not None:
-            self.floor[a] = np.asarray(pose_cov, float)[:3, :3]
-        g = rows[gated]
-        self.strikes[g] += 1
-        drop = g[self.strikes[g] >= self.params.max_strikes]
-        self.alive[drop] = False
-        out.updated, out.gated, out.dropped = int(accept.sum()), int(gated.sum()), len(drop)
-        self.stats["updated"] += out.updated
-        self.stats["gated"] += out.gated
-        self.stats["dropped"] += out.dropped
-        if self.window is not None:
-            live = self.alive[rows]
-            att = None if pose_cov is None else np.asarray(pose_cov, float)[3:, 3:]
-            self.window.add(t, C, p, att, self.ids[rows[live]], z_meas[live])
-            if self.window.due(t):
-                j_ids, X, P = self.window.solve(t, self._seed_prior)
-                j_rows = self.lookup(j_ids)
-                have = j_rows >= 0
-                self.x_joint[j_rows[have]] = X[have]
-                self.P_joint[j_rows[have]] = P[have]
-        return out
+        return x, 0.5 * (P_new + P_new.transpose(0, 2, 1)), d2, front
+
+    def _to_window(self, t: float, C: np.ndarray, p: np.ndarray, pose_cov: np.ndarray | None,
+                   rows: np.ndarray, z_meas: np.ndarray) -> None:
+        """The view (of the landmarks still alive) into the joint window; its solution, when
+        one is due, becomes the landmarks' joint estimates."""
+        live = self.alive[rows]
+        att = None if pose_cov is None else np.asarray(pose_cov, float)[3:, 3:]
+        self.window.add(t, C, p, att, self.ids[rows[live]], z_meas[live])
+        if self.window.due(t):
+            j_ids, X, P = self.window.solve(t, self._seed_prior)
+            j_rows = self.lookup(j_ids)
+            have = j_rows >= 0
+            self.x_joint[j_rows[have]] = X[have]
+            self.P_joint[j_rows[have]] = P[have]
 
     def _seed_prior(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The prior each of landmarks ``ids`` was seeded with (position, inverse covariance;

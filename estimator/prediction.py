@@ -1,4 +1,4 @@
-"""Hull outline prediction (thesis 5.3, SPEC section 6).
+"""Hull outline prediction (thesis 5.3).
 
 The officer sees where the hull will be in 1, 2, … N seconds if nothing changes: the current
 rate of turn is kept constant and the velocity is kept constant *in the body frame* (so a boat

@@ -113,6 +113,11 @@ class ImuData:
 # ------------------------------------------------------------------------ calibration
 
 
+def mean_focal(K: np.ndarray) -> float:
+    """Mean focal length (px) of intrinsics ``K``: 0.5 (f_x + f_y)."""
+    return 0.5 * (K[0, 0] + K[1, 1])
+
+
 @dataclass
 class CameraCalibration:
     width: int
@@ -121,6 +126,21 @@ class CameraCalibration:
     distortion: np.ndarray  # OpenCV (k1, k2, p1, p2, k3)
     C_camera_to_body: np.ndarray  # 3x3, C_C^B
     lever_arm_body: np.ndarray  # camera centre in the body frame, m
+
+    @property
+    def focal_px(self) -> float:
+        """The mean focal length (px): pixel noise and ray priors are isotropic in it."""
+        return mean_focal(self.K)
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """The fused camera pose of one frame: what a view of a designated target is taken in."""
+
+    t: float  # gpst of the frame
+    C_level_to_camera: np.ndarray  # (3,3)
+    position_ned: np.ndarray  # (3,) camera centre in L, m
+    pose_cov: np.ndarray | None = None  # (6,6) [position, attitude] covariance, None: unknown
 
 
 @dataclass

@@ -1,4 +1,5 @@
-"""Designated-target tracking in the video: particle filter of seed 002 (SPEC section 7).
+"""Designated-target tracking in the video: particle filter of seed 002
+(``docs/references.md``).
 
 The officer clicks a point of the quay; its image position must stay locked on it frame by
 frame while the ship moves, and a lost lock must be SAID, never replaced by a wrong point.
@@ -66,7 +67,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from filterpy.monte_carlo import systematic_resample
 
 from .landmarks import (
     LandmarkMap,
@@ -76,7 +76,7 @@ from .landmarks import (
     ray_prior,
     triangulate_point,
 )
-from .records import CameraCalibration
+from .records import CameraCalibration, CameraView
 
 METHODS = ("full", "template", "camshift_pf")
 
@@ -258,7 +258,7 @@ class TargetTracker:
         weights /= weights.sum()
         # MAP particle (eq. 22–23), before the weights are equalised by the resampling.
         p_map = cloud[int(np.argmax(weights))]
-        self.particles = cloud[resample_indexes(weights)]
+        self.particles = cloud[resample_indexes(weights, self.rng)]
         # p̂ is taken when the MAP hypothesis confirms it (within the cloud's own spread); away
         # from it, the MAP particle only when its own correlation is nearly as good — two
         # similar-looking places (seed 002's case), where continuity decides — not when the
@@ -354,7 +354,7 @@ class TargetTracker:
         weights = weights / weights.sum() if weights.sum() > 0 else np.full(len(cloud),
                                                                             1.0 / len(cloud))
         est = cloud[int(np.argmax(weights))].copy()
-        self.particles = cloud[resample_indexes(weights)]
+        self.particles = cloud[resample_indexes(weights, self.rng)]
         score = _score_at(gray, self.template, est) if self._inside(est, size) else -1.0
         self.uv = est
         if not self._inside(est, size) or score < p.lost_score:
@@ -734,34 +734,33 @@ class DesignatedTarget:
     structure window's solved views as of the click (refined at once)."""
 
     def __init__(self, camera: CameraCalibration, image: np.ndarray, uv: np.ndarray,
-                 position_ned: np.ndarray, covariance: np.ndarray | None,
-                 C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
-                 pose_cov: np.ndarray | None = None, params: TargetParams | None = None,
-                 method: str = "full", tracker_params: TrackerParams | None = None,
-                 seed: int | None = None, refine: bool = True, t: float = math.nan,
-                 earlier_frames: Sequence[tuple[float, np.ndarray]] = (),
+                 position_ned: np.ndarray, covariance: np.ndarray | None, view: CameraView,
+                 params: TargetParams | None = None, method: str = "full",
+                 tracker_params: TrackerParams | None = None, seed: int | None = None,
+                 refine: bool = True, earlier_frames: Sequence[tuple[float, np.ndarray]] = (),
                  views: SolvedViews | None = None) -> None:
         self.camera = camera
         self.refines = refine  # False: the 3-D point stays (a water-plane point: water moves)
         self.params = params or TargetParams()
         self._K = np.asarray(camera.K, float)
         self._dist = np.asarray(camera.distortion, float).ravel()
-        f = 0.5 * (self._K[0, 0] + self._K[1, 1])
+        self._focal = f = camera.focal_px
         self.tracker = TargetTracker(tracker_params, method=method, seed=seed)
         self.tracker.init(image, uv, self.params.window)
         self.map = LandmarkMap(f, self.params.landmark)
         X = np.asarray(position_ned, float).reshape(3)
-        P = ray_prior(X, camera_position_ned, f, self.params.landmark)[0] if covariance is None \
+        P = ray_prior(X, view.position_ned, f, self.params.landmark)[0] if covariance is None \
             else np.asarray(covariance, float).reshape(3, 3)
         if self.map.seed(np.array([0]), X[None], P[None]) != 1:
             raise ValueError("the designated point or its covariance is not finite")
         self.click_point = (X.copy(), P.copy())  # the prior ``refine`` starts from
-        self.click_time = float(t)  # views nearest it are trusted first (``refine``)
+        t = float(view.t)
+        self.click_time = t  # views nearest it are trusted first (``refine``)
         self.refined_views = 0  # views of the last ``refine`` (0: the point is not refined)
         self.seen = _SeenViews()
         if refine and math.isfinite(t):
             self._track_back(image, np.asarray(uv, float), t, earlier_frames)
-        self._view(np.asarray(uv, float), C_level_to_camera, camera_position_ned, pose_cov, t)
+        self._view(np.asarray(uv, float), view)
         self.map.views[:] = 0  # the click is not a tracked view (for the EKF's count)
         self.disagreements = 0
         self.status = "tracking"
@@ -780,6 +779,14 @@ class DesignatedTarget:
     def covariance(self) -> np.ndarray:
         return self.map.P[0] + self.map.floor[0]
 
+    def distance(self, view: CameraView) -> tuple[float, float]:
+        """Distance (m) from the camera of ``view`` to the 3-D point, and its 1-σ."""
+        X, P = self.position_ned, self.covariance
+        c = np.asarray(view.position_ned, float)
+        d = float(np.linalg.norm(X - c))
+        u = (X - c) / max(d, 1e-9)
+        return d, float(np.sqrt(max(u @ P @ u, 0.0)))
+
     def project(self, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray
                 ) -> np.ndarray | None:
         """The 3-D point in the image (distorted pixels), None behind the camera."""
@@ -790,12 +797,10 @@ class DesignatedTarget:
         uv, _ = cv2.projectPoints(xc[None], np.zeros(3), np.zeros(3), self._K, self._dist)
         return uv.reshape(2)
 
-    def update(self, t: float, image: np.ndarray, C_level_to_camera: np.ndarray,
-               camera_position_ned: np.ndarray, pose_cov: np.ndarray | None = None
-               ) -> TargetState:
-        """One frame (time ``t``) and the fused camera pose at its time."""
+    def update(self, image: np.ndarray, view: CameraView) -> TargetState:
+        """One frame and the fused camera pose at its time."""
         p = self.params
-        pred = self.project(C_level_to_camera, camera_position_ned)
+        pred = self.project(view.C_level_to_camera, view.position_ned)
         h, w = image.shape[:2]
         in_view = pred is not None and -0.5 <= pred[0] <= w - 0.5 and -0.5 <= pred[1] <= h - 0.5
         res = self.tracker.update(image)
@@ -805,15 +810,12 @@ class DesignatedTarget:
             reacquired = res.status == "tracking"
             self.reacquisitions += int(reacquired)
             reason = res.reason if not reacquired else "re-acquired at the projected 3-D point"
-        return self._state(t, res, reason, reacquired, pred if in_view else None,
-                           C_level_to_camera, camera_position_ned, pose_cov)
+        return self._state(res, reason, reacquired, pred if in_view else None, view)
 
-    def resume(self, t: float, image: np.ndarray, C_level_to_camera: np.ndarray,
-               camera_position_ned: np.ndarray, pose_cov: np.ndarray | None = None
-               ) -> TargetState:
+    def resume(self, image: np.ndarray, view: CameraView) -> TargetState:
         """Continue on a frame that does not follow the last one (a seek, skipped frames):
         the image track is taken back only where the 3-D point projects (re-acquisition)."""
-        pred = self.project(C_level_to_camera, camera_position_ned)
+        pred = self.project(view.C_level_to_camera, view.position_ned)
         h, w = image.shape[:2]
         in_view = pred is not None and -0.5 <= pred[0] <= w - 0.5 and -0.5 <= pred[1] <= h - 0.5
         self.tracker.status = "lost"
@@ -824,18 +826,15 @@ class DesignatedTarget:
         reacquired = res.status == "tracking"
         self.reacquisitions += int(reacquired)
         reason = "re-acquired at the projected 3-D point" if reacquired else res.reason
-        return self._state(t, res, reason, reacquired, pred if in_view else None,
-                           C_level_to_camera, camera_position_ned, pose_cov)
+        return self._state(res, reason, reacquired, pred if in_view else None, view)
 
-    def _state(self, t: float, res: TrackResult, reason: str, reacquired: bool,
-               pred: np.ndarray | None, C_level_to_camera: np.ndarray,
-               camera_position_ned: np.ndarray, pose_cov: np.ndarray | None) -> TargetState:
+    def _state(self, res: TrackResult, reason: str, reacquired: bool, pred: np.ndarray | None,
+               view: CameraView) -> TargetState:
         """Feed a tracked view to the 3-D point (χ²-checked) and form the target's state."""
         p = self.params
         uv = None
         if res.status == "tracking" and res.uv is not None:
-            ok = self._view(res.uv, C_level_to_camera, camera_position_ned, pose_cov, t) \
-                if self.refines else True
+            ok = self._view(res.uv, view) if self.refines else True
             self.disagreements = 0 if ok else self.disagreements + 1
             if self.disagreements >= p.max_disagreement:
                 self.tracker.status = "lost"
@@ -844,30 +843,24 @@ class DesignatedTarget:
             else:
                 uv = res.uv
         self.status = "tracking" if uv is not None else "lost"
-        X, P = self.position_ned, self.covariance
-        c = np.asarray(camera_position_ned, float)
-        d = float(np.linalg.norm(X - c))
-        u = (X - c) / max(d, 1e-9)
+        d, d_sigma = self.distance(view)
         return TargetState(status=self.status, uv=None if uv is None else np.asarray(uv).copy(),
-                           predicted_uv=pred, position_ned=X,
-                           covariance=P, distance_m=d,
-                           distance_sigma_m=float(np.sqrt(max(u @ P @ u, 0.0))),
+                           predicted_uv=pred, position_ned=self.position_ned,
+                           covariance=self.covariance, distance_m=d, distance_sigma_m=d_sigma,
                            score=float(res.score), views=int(self.map.views[0]),
                            reason=reason if uv is None or reacquired else "",
                            reacquired=reacquired)
 
     def refresh(self, points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
-                C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
-                views: SolvedViews | None) -> None:
+                view: CameraView, views: SolvedViews | None) -> None:
         """The port structure was refreshed (points, σ, their pixels in this frame; the
         window's solved views): ``reanchor`` on it, then ``refine`` in its views."""
         if len(points_ned):
-            self.reanchor(points_ned, sigma_m, uv_points, C_level_to_camera,
-                          camera_position_ned)
+            self.reanchor(points_ned, sigma_m, uv_points, view)
         self.refine(views)
 
     def reanchor(self, points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
-                 C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray) -> bool:
+                 view: CameraView) -> bool:
         """Take the 3-D point again from the port structure (points, σ, their pixels in this
         frame) around the pixel tracked now, when the points there have converged and the
         point has not been refined (``refine`` does better: it cannot take the wall behind a
@@ -876,15 +869,15 @@ class DesignatedTarget:
         uv = self.tracker.uv
         if not self.refines or self.refined or self.status != "tracking" or uv is None:
             return False
-        C = np.asarray(C_level_to_camera, float)
-        c = np.asarray(camera_position_ned, float)
+        C = np.asarray(view.C_level_to_camera, float)
+        c = np.asarray(view.position_ned, float)
         xy = cv2.undistortPoints(np.asarray(uv, np.float64).reshape(1, 1, 2), self._K,
                                  self._dist).reshape(2)
         ray = C.T @ np.array([xy[0], xy[1], 1.0])
         pts = np.asarray(points_ned, float).reshape(-1, 3)
         sig = np.asarray(sigma_m, float).reshape(-1)
         found = structure_point_at(pts, sig, uv_points, np.asarray(uv, float), c,
-                                   ray / np.linalg.norm(ray), 0.5 * (self._K[0, 0] + self._K[1, 1]))
+                                   ray / np.linalg.norm(ray), self._focal)
         if found is None:
             return False
         X, P, near = found
@@ -938,10 +931,10 @@ class DesignatedTarget:
             self.seen.add(np.array([tk for tk, _ in seen[::-1]]),
                           cv2.undistortPoints(uvs, self._K, self._dist).reshape(-1, 2))
 
-    def _view(self, uv: np.ndarray, C: np.ndarray, c: np.ndarray, pose_cov: np.ndarray | None,
-              t: float) -> bool:
+    def _view(self, uv: np.ndarray, view: CameraView) -> bool:
         """One tracked view of the 3-D point (kept for ``refine``); False when its χ² gate
         rejects it."""
+        C, c, pose_cov, t = view.C_level_to_camera, view.position_ned, view.pose_cov, view.t
         xy = cv2.undistortPoints(np.asarray(uv, np.float64).reshape(1, 1, 2), self._K,
                                  self._dist).reshape(1, 2)
         kept = self.map.x[0].copy(), self.map.P[0].copy()
@@ -1042,14 +1035,12 @@ def _robust_mean(v: np.ndarray) -> np.ndarray:
     return v[keep].mean(axis=0) if keep.any() else med
 
 
-def resample_indexes(weights: np.ndarray) -> np.ndarray:
-    """Systematic resampling (seed 002 eq. 20) of normalised weights → particle indexes."""
+def resample_indexes(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Systematic resampling (seed 002 eq. 20) of weights (normalised here) → particle
+    indexes, from the tracker's own generator (filterpy's ``systematic_resample`` draws from
+    numpy's global one: a track would not repeat from one run to the next)."""
     w = np.asarray(weights, float)
-    w = w / w.sum()
-    try:
-        return np.asarray(systematic_resample(w), int)
-    except IndexError:  # cumulative sum a hair below 1 and the last position above it
-        c = np.cumsum(w)
-        c[-1] = 1.0
-        pos = (np.random.random() + np.arange(len(w))) / len(w)
-        return np.searchsorted(c, pos).astype(int)
+    c = np.cumsum(w / w.sum())
+    c[-1] = 1.0  # a cumulative sum a hair below 1 would leave the last position unmatched
+    positions = (rng.random() + np.arange(len(w))) / len(w)
+    return np.searchsorted(c, positions, side="right").astype(int)

@@ -1,4 +1,4 @@
-"""Visual odometry block (thesis fig. 17 "VO演算部", SPEC section 4 "VO block").
+"""Visual odometry block (thesis 5.1.1, fig. 17; ``METHOD.md``).
 
 Monocular, causal, frame by frame: ORB corners are detected at keyframes and followed by
 pyramidal Lucas–Kanade with a forward–backward check, each result then aligned on the track's
@@ -49,7 +49,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
 from estimator.frames import skew
-from estimator.records import CameraCalibration
+from estimator.records import CameraCalibration, mean_focal
 
 STAGES = ("detect", "track", "pose", "triangulate", "ba")
 
@@ -205,7 +205,7 @@ def relative_pose(pts0: np.ndarray, pts1: np.ndarray, K: np.ndarray, threshold_p
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``relative_pose_normalised`` for undistorted pixel points of a camera with intrinsics K:
     returns (C_0_to_1, unit t^C1, inlier mask) or None."""
-    f = 0.5 * (K[0, 0] + K[1, 1])
+    f = mean_focal(K)
     return relative_pose_normalised(normalise_points(pts0, K), normalise_points(pts1, K),
                                     threshold_px / f, confidence)
 
@@ -252,100 +252,123 @@ def bundle_adjust(C_world_to_camera: np.ndarray, t_camera: np.ndarray, points: n
     analytic and sparse (a row pair touches one pose and one point), solved by LSMR.
     Returns the refined poses, points and the per-observation residual norm (px).
     """
-    n_cam, n_pt, n_obs = len(C_world_to_camera), len(points), len(xy)
-    free = np.flatnonzero(~np.asarray(fixed, bool))
-    slot = np.full(n_cam, -1)
-    slot[free] = np.arange(len(free))
-    n_pose = 6 * len(free)
-    ci, pi = np.asarray(camera_index), np.asarray(point_index)
-    obs_free = slot[ci] >= 0
-    C_init = np.asarray(C_world_to_camera, float)
+    ba = _BundleProblem(C_world_to_camera, t_camera, points, camera_index, point_index, xy,
+                        fixed, focal)
+    y0 = ba.whiten()
+    # Pseudo-Huber ("soft_l1"): scipy's piecewise "huber" stalls when most residuals start
+    # beyond the threshold (its curvature vanishes there); the smooth version does not.
+    sol = least_squares(ba.fun_y, y0, jac=ba.jac_y, method="trf", loss="soft_l1",
+                        f_scale=huber_px, max_nfev=max_nfev, tr_solver="lsmr",
+                        tr_options={"atol": 1e-6, "btol": 1e-6, "maxiter": 50})
+    x = ba.to_x(sol.x)
+    C, t, X, _ = ba.unpack(x)
+    res = ba.fun(x).reshape(-1, 2)
+    return C, t, X, np.linalg.norm(res, axis=1)
 
-    # Sparsity pattern is fixed: rows (2 per observation) × pose columns and point columns.
-    o = np.arange(n_obs)
-    rows_pt = np.broadcast_to(2 * o[:, None, None] + np.arange(2)[None, :, None], (n_obs, 2, 3))
-    cols_pt = np.broadcast_to(n_pose + 3 * pi[:, None, None] + np.arange(3), (n_obs, 2, 3))
-    of = o[obs_free]
-    rows_cam = np.broadcast_to(2 * of[:, None, None] + np.arange(2)[None, :, None],
-                               (len(of), 2, 6))
-    cols_cam = np.broadcast_to(6 * slot[ci[of]][:, None, None] + np.arange(6), (len(of), 2, 6))
-    rows = np.concatenate([rows_cam.ravel(), rows_pt.ravel()])
-    cols = np.concatenate([cols_cam.ravel(), cols_pt.ravel()])
 
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        C = C_init.copy()
-        t = np.array(t_camera, float)
-        dexp = np.zeros((n_cam, 3, 3, 3))
-        for k, c in enumerate(free):
+class _BundleProblem:
+    """The bundle adjustment's unknowns (free poses as [δ, t], then the points), residuals and
+    sparse Jacobian (``bundle_adjust``)."""
+
+    def __init__(self, C_world_to_camera: np.ndarray, t_camera: np.ndarray, points: np.ndarray,
+                 camera_index: np.ndarray, point_index: np.ndarray, xy: np.ndarray,
+                 fixed: np.ndarray, focal: float) -> None:
+        self.n_cam, self.n_pt, self.n_obs = len(C_world_to_camera), len(points), len(xy)
+        self.free = np.flatnonzero(~np.asarray(fixed, bool))
+        self.slot = np.full(self.n_cam, -1)
+        self.slot[self.free] = np.arange(len(self.free))
+        self.n_pose = 6 * len(self.free)
+        self.ci, self.pi = np.asarray(camera_index), np.asarray(point_index)
+        self.C_init = np.asarray(C_world_to_camera, float)
+        self.t_camera = t_camera
+        self.xy, self.focal = xy, focal
+        self.of = np.arange(self.n_obs)[self.slot[self.ci] >= 0]  # observations by free poses
+        self.rows, self.cols = self._pattern()
+        self.x0 = np.concatenate([np.column_stack([np.zeros((len(self.free), 3)),
+                                                   np.asarray(t_camera, float)[self.free]]
+                                                  ).ravel(), np.asarray(points, float).ravel()])
+
+    def _pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """The fixed sparsity: rows (2 per observation) × pose columns and point columns."""
+        o, of, n_obs = np.arange(self.n_obs), self.of, self.n_obs
+        rows_pt = np.broadcast_to(2 * o[:, None, None] + np.arange(2)[None, :, None],
+                                  (n_obs, 2, 3))
+        cols_pt = np.broadcast_to(self.n_pose + 3 * self.pi[:, None, None] + np.arange(3),
+                                  (n_obs, 2, 3))
+        rows_cam = np.broadcast_to(2 * of[:, None, None] + np.arange(2)[None, :, None],
+                                   (len(of), 2, 6))
+        cols_cam = np.broadcast_to(6 * self.slot[self.ci[of]][:, None, None] + np.arange(6),
+                                   (len(of), 2, 6))
+        return (np.concatenate([rows_cam.ravel(), rows_pt.ravel()]),
+                np.concatenate([cols_cam.ravel(), cols_pt.ravel()]))
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        C = self.C_init.copy()
+        t = np.array(self.t_camera, float)
+        dexp = np.zeros((self.n_cam, 3, 3, 3))
+        for k, c in enumerate(self.free):
             Rd, J = cv2.Rodrigues(x[6 * k:6 * k + 3])
-            C[c] = Rd @ C_init[c]
+            C[c] = Rd @ self.C_init[c]
             t[c] = x[6 * k + 3:6 * k + 6]
             dexp[c] = J.reshape(3, 3, 3)  # [k, i, j] = d exp(δ)_ij / d δ_k
-        return C, t, x[n_pose:].reshape(-1, 3), dexp
+        return C, t, x[self.n_pose:].reshape(-1, 3), dexp
 
-    x0 = np.concatenate([np.column_stack([np.zeros((len(free), 3)),
-                                          np.asarray(t_camera, float)[free]]).ravel(),
-                         np.asarray(points, float).ravel()])
-
-    def camera_points(x: np.ndarray):
-        C, t, X, dexp = unpack(x)
-        Xc = np.einsum("oij,oj->oi", C[ci], X[pi]) + t[ci]
+    def _camera_points(self, x: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        C, t, X, dexp = self.unpack(x)
+        Xc = np.einsum("oij,oj->oi", C[self.ci], X[self.pi]) + t[self.ci]
         return C, t, X, dexp, Xc
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        Xc = camera_points(x)[4]
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        Xc = self._camera_points(x)[4]
         z = np.maximum(Xc[:, 2:], 1e-9)
-        return (focal * (Xc[:, :2] / z - xy)).ravel()
+        return (self.focal * (Xc[:, :2] / z - self.xy)).ravel()
 
-    def blocks(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """d(residual)/d(pose) of the observations by free cameras and d(residual)/d(point)."""
-        C, _, X, dexp, Xc = camera_points(x)
+        C, _, X, dexp, Xc = self._camera_points(x)
+        ci, of, focal = self.ci, self.of, self.focal
         z = np.maximum(Xc[:, 2], 1e-9)
-        A = np.zeros((n_obs, 2, 3))  # d(residual) / d(Xc)
+        A = np.zeros((self.n_obs, 2, 3))  # d(residual) / d(Xc)
         A[:, 0, 0] = A[:, 1, 1] = focal / z
         A[:, 0, 2] = -focal * Xc[:, 0] / z**2
         A[:, 1, 2] = -focal * Xc[:, 1] / z**2
-        Y = np.einsum("oij,oj->oi", C_init[ci[of]], X[pi[of]])  # point rotated by C_init
+        Y = np.einsum("oij,oj->oi", self.C_init[ci[of]], X[self.pi[of]])  # point by C_init
         dXc_ddelta = np.einsum("okij,oj->oik", dexp[ci[of]], Y)
         return np.concatenate([A[of] @ dXc_ddelta, A[of]], axis=2), A @ C[ci]
 
-    # Block-Jacobi preconditioning as a change of variables x = x0 + Q (y - y0): each pose and
-    # each point is whitened by its own block of JᵀJ, so LSMR is not slowed by the weak depth
-    # direction of far points and few iterations give nearly exact Gauss–Newton steps.
-    d_cam, d_pt = blocks(x0)
-    H_cam = np.zeros((len(free), 6, 6))
-    np.add.at(H_cam, slot[ci[of]], np.einsum("oki,okj->oij", d_cam, d_cam))
-    H_pt = np.zeros((n_pt, 3, 3))
-    np.add.at(H_pt, pi, np.einsum("oki,okj->oij", d_pt, d_pt))
-    Q_cam, Q_pt = _whitening(H_cam), _whitening(H_pt)
-    r0 = fun(x0)
-    # trf starts with a trust radius |y0|: make it the size of a full step (|r0| in whitened
-    # units) instead of growing it from 1.
-    y0 = np.full(len(x0), np.linalg.norm(r0) / np.sqrt(len(x0)) + 1e-3)
+    def whiten(self) -> np.ndarray:
+        """Block-Jacobi preconditioning as a change of variables x = x0 + Q (y - y0): each
+        pose and each point is whitened by its own block of JᵀJ, so LSMR is not slowed by the
+        weak depth direction of far points and few iterations give nearly exact Gauss–Newton
+        steps. Returns y0."""
+        d_cam, d_pt = self.blocks(self.x0)
+        H_cam = np.zeros((len(self.free), 6, 6))
+        np.add.at(H_cam, self.slot[self.ci[self.of]], np.einsum("oki,okj->oij", d_cam, d_cam))
+        H_pt = np.zeros((self.n_pt, 3, 3))
+        np.add.at(H_pt, self.pi, np.einsum("oki,okj->oij", d_pt, d_pt))
+        self.Q_cam, self.Q_pt = _whitening(H_cam), _whitening(H_pt)
+        r0 = self.fun(self.x0)
+        # trf starts with a trust radius |y0|: make it the size of a full step (|r0| in
+        # whitened units) instead of growing it from 1.
+        self.y0 = np.full(len(self.x0), np.linalg.norm(r0) / np.sqrt(len(self.x0)) + 1e-3)
+        return self.y0
 
-    def to_x(y: np.ndarray) -> np.ndarray:
-        dy = y - y0
-        dx_cam = np.einsum("kij,kj->ki", Q_cam, dy[:n_pose].reshape(-1, 6)).ravel()
-        dx_pt = np.einsum("pij,pj->pi", Q_pt, dy[n_pose:].reshape(-1, 3)).ravel()
-        return x0 + np.concatenate([dx_cam, dx_pt])
+    def to_x(self, y: np.ndarray) -> np.ndarray:
+        dy = y - self.y0
+        dx_cam = np.einsum("kij,kj->ki", self.Q_cam, dy[:self.n_pose].reshape(-1, 6)).ravel()
+        dx_pt = np.einsum("pij,pj->pi", self.Q_pt, dy[self.n_pose:].reshape(-1, 3)).ravel()
+        return self.x0 + np.concatenate([dx_cam, dx_pt])
 
-    def fun_y(y: np.ndarray) -> np.ndarray:
-        return fun(to_x(y))
+    def fun_y(self, y: np.ndarray) -> np.ndarray:
+        return self.fun(self.to_x(y))
 
-    def jac_y(y: np.ndarray) -> csr_matrix:
-        d_cam, d_pt = blocks(to_x(y))
-        data = np.concatenate([(d_cam @ Q_cam[slot[ci[of]]]).ravel(), (d_pt @ Q_pt[pi]).ravel()])
-        return csr_matrix((data, (rows, cols)), shape=(2 * n_obs, n_pose + 3 * n_pt))
-
-    # Pseudo-Huber ("soft_l1"): scipy's piecewise "huber" stalls when most residuals start
-    # beyond the threshold (its curvature vanishes there); the smooth version does not.
-    sol = least_squares(fun_y, y0, jac=jac_y, method="trf", loss="soft_l1", f_scale=huber_px,
-                        max_nfev=max_nfev, tr_solver="lsmr",
-                        tr_options={"atol": 1e-6, "btol": 1e-6, "maxiter": 50})
-    x = to_x(sol.x)
-    C, t, X, _ = unpack(x)
-    res = fun(x).reshape(-1, 2)
-    return C, t, X, np.linalg.norm(res, axis=1)
+    def jac_y(self, y: np.ndarray) -> csr_matrix:
+        d_cam, d_pt = self.blocks(self.to_x(y))
+        data = np.concatenate([(d_cam @ self.Q_cam[self.slot[self.ci[self.of]]]).ravel(),
+                               (d_pt @ self.Q_pt[self.pi]).ravel()])
+        return csr_matrix((data, (self.rows, self.cols)),
+                          shape=(2 * self.n_obs, self.n_pose + 3 * self.n_pt))
 
 
 def _same_pose_direction(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
@@ -534,7 +557,7 @@ class VisualOdometry:
         p = self.params
         self._K = np.asarray(camera.K, float)
         self._dist = np.asarray(camera.distortion, float).ravel()
-        self._focal = 0.5 * (self._K[0, 0] + self._K[1, 1])
+        self._focal = camera.focal_px
         self._size = (int(camera.width), int(camera.height))
         self._orb = cv2.ORB_create(nfeatures=4 * p.n_features, scaleFactor=1.2,
                                    nlevels=p.orb_levels, edgeThreshold=16, patchSize=16,
@@ -963,12 +986,18 @@ class VisualOdometry:
             for f in between:
                 f.C = f.t = None
             return self._output(time, "initialising")
+        return self._first_world(time, detect, R, t, X, good, rigid, between)
+
+    def _first_world(self, time: float, detect: Callable, R: np.ndarray, t: np.ndarray,
+                     X: np.ndarray, good: np.ndarray, rigid: np.ndarray,
+                     between: list[_Frame]) -> VoOutput:
+        """The world: reference = KF0 = W; a few located frames in between and this frame
+        become keyframes too, so the first BA sees the map from several views, not two."""
+        p, tr = self.params, self._tracks
+        I3, z3 = np.eye(3), np.zeros(3)
         for f in self._history:
             if f.time == self._reference_time:
                 f.C, f.t = I3.copy(), z3.copy()
-
-        # The world: reference = KF0 = W; a few located frames in between and this frame become
-        # keyframes too, so the first BA sees the map from several views, not two.
         kf0 = _Keyframe(0, self._reference_time, I3.copy(), z3.copy())
         kf0.add(tr.id[good], tr.anchor_xy[good])
         self._keyframes = [kf0]

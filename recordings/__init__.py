@@ -8,7 +8,11 @@ The format API is re-exported lazily (PEP 562) so that importing a sibling such 
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 from typing import Any
+
+# The bundled recording (small-boat, seed 1): what every command uses without a RECORDING.
+DEFAULT_RECORDING = Path(__file__).resolve().parent / "default"
 
 __all__ = [
     "FORMAT_NAME",

@@ -1,8 +1,13 @@
-"""RINEX 3 observation and navigation files (read both, write observations).
+"""RINEX observation and navigation files (read both, write observations).
 
-Reads real receiver output (RINEX 3.02-3.05 observation and mixed navigation files, all
-constellations) and writes the L1 observations of the project as RINEX 3.04. Every problem in
-an input file raises :class:`RinexError` naming the file, the line and what is wrong.
+Reads real receiver output (RINEX 3.02-3.05 and 2.10-2.11 observation files, RINEX 3 mixed
+navigation files, all constellations) and writes the L1 observations of the project as
+RINEX 3.04. Files may be gzipped (``.gz``) and observation files Hatanaka-compressed
+(``.crx``, ``.yyd``; decompressed with the ``hatanaka`` package); other compressions (``.Z``,
+zip, bzip2, xz) are refused with a message naming them. RINEX 2 observation types are mapped
+onto RINEX 3 codes (``_V2_ATTRIBUTES``) so that one reader of the L1 view serves both. Every
+problem in an input file raises :class:`RinexError` naming the file, the line and what is
+wrong.
 
 Times are GPS seconds since the GPS epoch (``gpst``, see ``estimator.frames``): observation
 epochs in another time scale (BDT, GLONASS UTC) and BeiDou / GLONASS ephemeris times are
@@ -11,12 +16,16 @@ converted on reading.
 
 from __future__ import annotations
 
+import gzip
 import math
+import warnings
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
+import hatanaka
 import numpy as np
 
 from estimator.frames import SECONDS_PER_WEEK, datetime_from_gpst, gpst_from_datetime
@@ -137,12 +146,45 @@ class ObsFile:
 # ----------------------------------------------------------------------------- helpers
 
 
+# leading bytes of compressed files that are not read (gzip and Hatanaka are)
+_REFUSED_COMPRESSION = (
+    (b"\x1f\x9d", "Unix-compressed (.Z)"),
+    (b"PK\x03\x04", "a zip archive"),
+    (b"BZh", "bzip2-compressed"),
+    (b"\xfd7zXZ\x00", "xz-compressed"),
+)
+
+
 def _lines(path: Path) -> list[str]:
+    """The file's lines, gunzipped and Hatanaka-decompressed when it is so compressed."""
+    name = str(path)
     try:
-        # latin-1 never fails: a stray byte in a comment must not make the file unreadable
-        text = path.read_text(encoding="latin-1")
+        data = path.read_bytes()
     except OSError as exc:
-        raise _error(str(path), None, f"cannot read: {exc.strerror or exc}") from exc
+        raise _error(name, None, f"cannot read: {exc.strerror or exc}") from exc
+    for magic, what in _REFUSED_COMPRESSION:
+        if data.startswith(magic):
+            raise _error(name, None, f"{what} file: only gzip (.gz) and Hatanaka (.crx, .yyd) "
+                                     "compression are read; decompress it first")
+    if data.startswith(b"\x1f\x8b"):
+        try:
+            data = gzip.decompress(data)
+        except (OSError, EOFError, zlib.error) as exc:
+            raise _error(name, None, f"corrupt gzip data: {exc}") from None
+    # latin-1 never fails: a stray byte in a comment must not make the file unreadable
+    text = data.decode("latin-1")
+    if _label(text[:text.find("\n") if "\n" in text else None]).startswith("CRINEX VERS"):
+        # crx2rnx only warns about corrupt data (and drops epochs): that is an error here
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                text = hatanaka.crx2rnx(text)
+            except hatanaka.HatanakaException as exc:
+                raise _error(name, None, f"Hatanaka (Compact RINEX) decompression failed: "
+                                         f"{str(exc).strip()}") from None
+        if caught:
+            raise _error(name, None, f"corrupt Hatanaka (Compact RINEX) data: "
+                                     f"{str(caught[0].message).strip()}")
     return text.splitlines()
 
 
@@ -180,21 +222,21 @@ def _fmt_time(t: float) -> str:
     return datetime_from_gpst(t).isoformat(sep=" ") if math.isfinite(t) else "blank"
 
 
-def _check_first_line(path: str, lines: list[str], want_type: str, what: str) -> float:
+def _check_first_line(path: str, lines: list[str], want_type: str, what: str,
+                      versions: tuple[int, ...] = (3,)) -> float:
     if not lines:
         raise _error(path, None, f"empty file (not a RINEX {what} file)")
     first = lines[0]
     label = _label(first)
-    if label.startswith("CRINEX"):
-        raise _error(path, 1, "Hatanaka-compressed RINEX (decompress it with crx2rnx first)")
     if label != "RINEX VERSION / TYPE":
         raise _error(path, 1, f"not a RINEX {what} file (no 'RINEX VERSION / TYPE' record)")
     try:
         version = float(first[0:9])
     except ValueError:
         raise _error(path, 1, f"malformed RINEX version {first[0:9].strip()!r}") from None
-    if not 3.0 <= version < 4.0:
-        raise _error(path, 1, f"RINEX version {version:.2f} is not supported (only 3.xx)")
+    if int(version) not in versions:
+        supported = " and ".join(f"{v}.xx" for v in versions)
+        raise _error(path, 1, f"RINEX version {version:.2f} is not supported (only {supported})")
     if first[20:21] != want_type:
         raise _error(path, 1, f"not a RINEX {what} file (file type {first[20:21]!r}, "
                               f"expected {want_type!r})")
@@ -363,22 +405,25 @@ def _apply_event_records(path: str, header: ObsHeader, start: int, records: list
         label = _label(rec)
         if label == "COMMENT":
             header.comments.append(rec[:60].rstrip())
-        elif label == "SYS / # / OBS TYPES":
+        elif label in ("SYS / # / OBS TYPES", "# / TYPES OF OBSERV"):
             raise _error(path, start + k, "observation types change inside the data "
                                           "(not supported)")
 
 
 def read_obs(path: str | Path) -> ObsFile:
-    """Read a RINEX 3 observation file (3.02-3.05, any constellations).
+    """Read a RINEX observation file (3.02-3.05 or 2.10-2.11, any constellations; gzipped
+    and/or Hatanaka-compressed or not).
 
     Blank observations become (nan, 0, 0). Epochs with flag 0 or 1 become :class:`RawEpoch`;
     event records (flags 2-6) are kept in ``events`` with their special records, and comments
     among them are appended to the header's. Epoch times are converted to GPST from the
-    header's time system.
+    header's time system. RINEX 2 observation types appear under their RINEX 3 codes.
     """
     p = Path(path)
     name = str(p)
     lines = _lines(p)
+    if _check_first_line(name, lines, "O", "observation", versions=(2, 3)) < 3.0:
+        return _read_obs_v2(name, lines)
     header, i = _parse_obs_header(name, lines)
     layout = {s: tuple(codes) for s, codes in header.obs_types.items()}
     epochs: list[RawEpoch] = []
@@ -447,6 +492,219 @@ def read_obs(path: str | Path) -> ObsFile:
         i += 1 + count
 
     return ObsFile(path=name, header=header, epochs=epochs, events=events)
+
+
+# ------------------------------------------------------------------ RINEX 2 observations
+
+# RINEX 2 observation type (kind + band) -> RINEX 3 attribute, per system (C codes default
+# to X, P codes to P). Band 1 phase, Doppler and SNR take the attribute of C1 when it is
+# declared (C/A tracking), else of P1; on other bands P before C. BeiDou (RINEX 2.12 "C") B1
+# is band 2.
+_V2_ATTRIBUTES = {
+    "G": {"C1": "C", "P1": "W", "C2": "X", "P2": "W", "C5": "X"},
+    "R": {"C1": "C", "P1": "P", "C2": "C", "P2": "P"},
+    "E": {},  # every Galileo signal: X (RINEX 2.11 does not tell the channel)
+    "S": {"C1": "C", "C5": "X"},
+    "J": {"C1": "C", "C2": "X", "C5": "X"},
+    "C": {"C2": "I", "C7": "I", "C6": "I"},
+}
+
+
+def _v3_codes(system: str, v2_types: list[str]) -> tuple[str, ...]:
+    attrs = _V2_ATTRIBUTES[system]
+    declared = set(v2_types)
+    out = []
+    for t in v2_types:
+        kind, band = t[0], t[1]
+        if kind in "CP":
+            code = "C" + band + attrs.get(t, "X" if kind == "C" else "P")
+        else:  # L, D, S follow the band's code, C first on band 1, P first elsewhere
+            order = ("C", "P") if band == "1" else ("P", "C")
+            ref = next((k + band for k in order if k + band in declared), None)
+            code = kind + band + (attrs.get(ref, "X" if ref[0] == "C" else "P") if ref
+                                  else "X")
+        out.append(code)
+    if len(set(out)) != len(out):
+        raise ValueError(f"RINEX 2 types {v2_types} map onto repeated RINEX 3 codes {out}")
+    return tuple(out)
+
+
+def _parse_obs_header_v2(path: str, lines: list[str]) -> tuple[ObsHeader, int, list[str]]:
+    """Header of a RINEX 2 observation file, its first data line index and its types."""
+    version = float(lines[0][0:9])
+    file_system = (lines[0][40:41].strip() or "G")
+    marker = receiver = ""
+    position: np.ndarray | None = None
+    interval: float | None = None
+    leap: int | None = None
+    first_obs: tuple[datetime, float, str, int] | None = None
+    comments: list[str] = []
+    types: list[str] = []
+    declared: tuple[int, int] | None = None
+    for i in range(1, len(lines)):
+        line = lines[i]
+        n = i + 1
+        label = _label(line)
+        try:
+            if label == "END OF HEADER":
+                break
+            if label == "COMMENT":
+                comments.append(line[:60].rstrip())
+            elif label == "MARKER NAME":
+                marker = line[:60].strip()
+            elif label == "REC # / TYPE / VERS":
+                receiver = line[20:40].strip()
+            elif label == "APPROX POSITION XYZ":
+                position = np.array([float(line[k:k + 14]) for k in (0, 14, 28)])
+            elif label == "INTERVAL":
+                interval = float(line[0:10])
+            elif label == "LEAP SECONDS":
+                leap = int(line[0:6])
+            elif label == "WAVELENGTH FACT L1/2":
+                if line[0:6].strip() == "2":
+                    raise _error(path, n, "half-wavelength L1 phase (WAVELENGTH FACT 2) is "
+                                          "not supported")
+            elif label == "TIME OF FIRST OBS":
+                t = datetime(*(int(line[k:k + 6]) for k in range(0, 30, 6)))
+                first_obs = (t, float(line[30:43]), line[48:51].strip(), n)
+            elif label == "# / TYPES OF OBSERV":
+                if line[0:6].strip():
+                    if declared is not None:
+                        raise _error(path, n, "# / TYPES OF OBSERV declared twice")
+                    declared = (int(line[0:6]), n)
+                elif declared is None:
+                    raise _error(path, n, "# / TYPES OF OBSERV continuation without a count")
+                for k in range(6, 60, 6):
+                    code = line[k:k + 6].strip()
+                    if not code:
+                        continue
+                    if len(code) != 2 or code[0] not in "CPLDS" or not code[1].isdigit():
+                        raise _error(path, n, f"unknown observation type {code!r}")
+                    types.append(code)
+        except ValueError as exc:
+            if isinstance(exc, RinexError):
+                raise
+            raise _error(path, n, f"malformed {label or 'header'} record: {line.rstrip()!r}"
+                         ) from None
+    else:
+        raise _error(path, len(lines), "missing END OF HEADER (file ends in the header)")
+    if declared is None:
+        raise _error(path, i + 1, "no # / TYPES OF OBSERV record in the header")
+    if declared[0] != len(types):
+        raise _error(path, declared[1], f"# / TYPES OF OBSERV announces {declared[0]} types "
+                                        f"but lists {len(types)}")
+    systems = "GRESJC" if file_system == "M" else file_system
+    if any(sys_ not in _V2_ATTRIBUTES for sys_ in systems):
+        raise _error(path, 1, f"satellite system {file_system!r} is not supported")
+    obs_types = {sys_: list(_v3_codes(sys_, types)) for sys_ in systems}
+    time_system = _DEFAULT_TIME_SYSTEM.get(file_system, "GPS")
+    time_first: float | None = None
+    if first_obs is not None:
+        t, sec, system, n = first_obs
+        time_system = system or time_system
+        try:
+            time_first = gpst_from_datetime(t) + sec + _time_offset(time_system, leap, t)
+        except ValueError as exc:
+            raise _error(path, n, str(exc)) from None
+    header = ObsHeader(version=version, marker_name=marker, receiver_type=receiver,
+                       approx_position_ecef=position, obs_types=obs_types, interval=interval,
+                       time_first_obs=time_first, glonass_slots={}, leap_seconds=leap,
+                       comments=comments, time_system=time_system)
+    return header, i + 1, types
+
+
+def _v2_satellites(path: str, lines: list[str], i: int, count: int) -> tuple[list[str], int]:
+    """Satellite ids of an epoch record (12 per line, continued) and the next line index."""
+    sats: list[str] = []
+    while len(sats) < count:
+        if i >= len(lines):
+            raise _error(path, len(lines), "file ends inside an epoch's satellite list")
+        line = lines[i]
+        for k in range(32, 68, 3):
+            if len(sats) == count:
+                break
+            raw = line[k:k + 3]
+            if not raw.strip():
+                raise _error(path, i + 1, f"epoch announces {count} satellites but lists "
+                                          f"{len(sats)}")
+            system = raw[0] if raw[0] != " " else "G"  # blank system: GPS
+            if not raw[1:3].strip().isdigit():
+                raise _error(path, i + 1, f"malformed satellite id {raw!r}")
+            sats.append(system + raw[1:3].replace(" ", "0"))
+        i += 1
+    return sats, i
+
+
+def _read_obs_v2(path: str, lines: list[str]) -> ObsFile:
+    header, i, types = _parse_obs_header_v2(path, lines)
+    layout = {sys_: tuple(codes) for sys_, codes in header.obs_types.items()}
+    per_sat = max(1, -(-len(types) // 5))  # lines of observations per satellite
+    epochs: list[RawEpoch] = []
+    events: list[ObsEvent] = []
+    last_time, last_line = -math.inf, 0
+    n_lines = len(lines)
+    while i < n_lines:
+        line = lines[i]
+        n = i + 1
+        if not line.strip():
+            i += 1
+            continue
+        flag_text, count_text = line[28:29], line[29:32]
+        if not flag_text.isdigit() or not count_text.strip().isdigit():
+            raise _error(path, n, f"malformed epoch record {line.rstrip()!r}")
+        flag, count = int(flag_text), int(count_text)
+        if flag > 6:
+            raise _error(path, n, f"invalid epoch flag {flag}")
+        time = _NAN
+        if line[0:26].strip() or flag in (0, 1, 6):
+            try:
+                yy = int(line[1:3])
+                t = datetime(yy + (1900 if yy >= 80 else 2000), int(line[4:6]), int(line[7:9]),
+                             int(line[10:12]), int(line[13:15]))
+                sec = float(line[15:26])
+                if not 0.0 <= sec < 61.0:
+                    raise ValueError
+            except ValueError:
+                raise _error(path, n, f"malformed epoch time {line[0:26].strip()!r}") from None
+            time = gpst_from_datetime(t) + sec + _time_offset(header.time_system,
+                                                              header.leap_seconds, t)
+        if flag not in (0, 1, 6):
+            block = lines[i + 1:i + 1 + count]
+            if len(block) < count:
+                raise _error(path, n_lines, f"file ends inside the event of line {n}")
+            if flag in (3, 4):
+                _apply_event_records(path, header, n + 1, block)
+            events.append(ObsEvent(time=time, flag=flag, line=n, records=list(block)))
+            i += 1 + count
+            continue
+        sats, i = _v2_satellites(path, lines, i, count)
+        observations: dict[str, dict[str, tuple[float, int, int]]] = {}
+        for sat in sats:
+            if i + per_sat > n_lines:
+                raise _error(path, n_lines, f"file ends inside the epoch of line {n}")
+            fields = ""
+            for k in range(per_sat):
+                obs_line = lines[i + k]
+                end = len(obs_line.rstrip())
+                if 0 < end % 16 < 14:
+                    raise _error(path, i + k + 1, f"{sat}: line ends inside a value "
+                                                  "(truncated line?)")
+                fields += f"{obs_line:<80.80}"
+            if sat[0] not in layout:
+                raise _error(path, i + 1, f"satellite {sat} of a system the file does not "
+                                          "declare")
+            _, values = _parse_sat_line(path, i + 1, sat + fields[:16 * len(types)], layout)
+            observations[sat] = values
+            i += per_sat
+        if flag in (0, 1):
+            if time < last_time:
+                raise _error(path, n, f"epoch {_fmt_time(time)} is earlier than the previous "
+                                      f"one ({_fmt_time(last_time)}, line {last_line})")
+            last_time, last_line = time, n
+            epochs.append(RawEpoch(time=time, flag=flag, observations=observations))
+        else:
+            events.append(ObsEvent(time=time, flag=flag, line=n, records=[]))
+    return ObsFile(path=path, header=header, epochs=epochs, events=events)
 
 
 # ---------------------------------------------------------------------------- L1 view

@@ -10,14 +10,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from backend.geometry import (
-    Projector,
-    berth_metrics,
-    camera_pose,
-    hue_color,
-    water_plane_point,
-)
+from backend.geometry import berth_metrics, hue_color
 from backend.overlay import OverlayConfig, build_overlay, polygon_distance
+from engine.camera import Projector, camera_pose, water_plane_point
 from estimator.frames import camera_to_body, euler_to_dcm
 from estimator.prediction import predict_outlines, predict_poses
 from estimator.records import CameraCalibration, Hull

@@ -10,13 +10,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from backend.reports.baseline import add_baseline_parser, baseline_report, format_baseline_report
-from backend.reports.compass import (
-    add_compass_parser,
-    compass_report,
-    compass_report_for,
-    format_compass_report,
-)
+from evaluation.baseline import baseline_report, format_baseline_report
+from evaluation.cli import add_baseline_parser, add_compass_parser
+from evaluation.compass import compass_report, compass_report_for, format_compass_report
 from recordings.format import ReferenceTrajectory
 from recordings.rinex import read_nav
 from recordings.sim.gnss import simulate_gnss

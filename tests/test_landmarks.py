@@ -287,16 +287,16 @@ def test_fusion_structure_uses_refined_landmarks():
                       antennas_body=SMALL_BOAT.antennas_body(), imu=ImuCalibration())
     f = Fusion(cal, NavigationData(), FusionOptions())
     assert f.landmarks is not None and len(f.landmarks) == 0
-    f._frozen = {1: np.array([10.0, 0.0, -1.0]), 2: np.array([12.0, 1.0, -1.0])}
-    f._frozen_sigma = {1: 0.5, 2: 0.5}
+    f.coupling.frozen = {1: np.array([10.0, 0.0, -1.0]), 2: np.array([12.0, 1.0, -1.0])}
+    f.coupling.frozen_sigma = {1: 0.5, 2: 0.5}
     f.landmarks.seed(np.array([2]), np.array([[12.5, 1.0, -1.0]]), np.eye(3)[None] * 0.01)
     f.landmarks.views[:] = 10
-    f._frozen[3] = np.array([14.0, 2.0, -1.0])
-    f._frozen_sigma[3] = 0.5
+    f.coupling.frozen[3] = np.array([14.0, 2.0, -1.0])
+    f.coupling.frozen_sigma[3] = 0.5
     f.landmarks.seed(np.array([3]), np.array([[14.0, 2.0, -1.0]]), np.eye(3)[None] * 0.01)
     f.landmarks.alive[f.landmarks.lookup([3])] = False  # dropped by its gate: rejected
     # 4: a VO point 6 m from the camera whose landmark is still 20 m uncertain: no information
-    f._frozen[4], f._frozen_sigma[4] = np.array([6.0, 0.0, -1.0]), 0.2
+    f.coupling.frozen[4], f.coupling.frozen_sigma[4] = np.array([6.0, 0.0, -1.0]), 0.2
     f.landmarks.seed(np.array([4]), np.array([[30.0, 0.0, -1.0]]), np.eye(3)[None] * 400.0)
     f.landmarks.last_camera[f.landmarks.lookup([4])] = 0.0
     pts, sig, ids = f.structure()

@@ -1,4 +1,4 @@
-"""Large-ship regression (SPEC section 2: ~0.1 m/s, quay ~100 m abeam, 10 cm compass).
+"""Large-ship regression (the large-ship platform: ~0.1 m/s, quay ~100 m abeam, 10 cm compass).
 
 A 60 s large-ship run (motion + MEMS IMU + four-receiver GNSS of ``recordings.sim``, no video)
 with VO outputs made from the truth whose yaw DRIFTS 0.03 deg/s, as the real VO's does on this

@@ -1,4 +1,4 @@
-"""The ``replay --report`` experiments (backend/reports/replay.py) on the first 40 s of the
+"""The ``replay --report`` experiments (evaluation/report.py) on the first 40 s of the
 bundled small-boat recording, 20 s of initialisation: one report per module, checked against
 tolerances a broken fusion fails; plus the bad inputs through the CLI."""
 
@@ -10,33 +10,39 @@ from pathlib import Path
 import pytest
 
 from backend.cli import main
-from backend.reports.replay import _json_safe, format_replay_report, replay_report
+from evaluation.records import ReplayReport, to_json
+from evaluation.report import ReportOptions, replay_report
+from evaluation.text import format_replay_report
 from recordings.format import load
 
 BUNDLED = Path(__file__).resolve().parent.parent / "recordings" / "default"
 
 
 @pytest.fixture(scope="module")
-def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
+def typed(tmp_path_factory: pytest.TempPathFactory) -> ReplayReport:
     plots = tmp_path_factory.mktemp("replay-plots")
-    rep = replay_report(BUNDLED, init_s=20.0, end_s=40.0, subset_sizes=(3, 0),
-                        single_satellites=2, without_cpp=False, plots_dir=plots,
-                        progress=False)
-    rep["_plots_dir"] = str(plots)
-    return rep
+    return replay_report(BUNDLED, ReportOptions(init_s=20.0, end_s=40.0, subset_sizes=(3, 0),
+                                                single_satellites=2, without_cpp=False,
+                                                plots_dir=plots))
 
 
-def test_tracking_and_landmark_evaluations_are_part_of_the_report(report: dict) -> None:
+@pytest.fixture(scope="module")
+def report(typed: ReplayReport) -> dict:
+    """The report as its JSON (what ``--json`` prints)."""
+    return json.loads(json.dumps(to_json(typed), allow_nan=False))
+
+
+def test_tracking_and_landmark_evaluations_are_part_of_the_report(report: dict,
+                                                                 typed: ReplayReport) -> None:
     # Early in the berthing no quay point is 12-28 m away: the section says so, not a figure.
     assert isinstance(report["tracking"]["methods"], dict)
     assert report["tracking"]["methods"] or report["tracking"]["reason"]
     assert "error_vs_views" in report["landmarks"]
-    assert "Designated-target tracking" in format_replay_report(report)
+    assert "Designated-target tracking" in format_replay_report(typed)
 
 
 def test_json_shape_is_stable_and_strict(report: dict) -> None:
-    doc = _json_safe({k: v for k, v in report.items() if k != "_plots_dir"})
-    json.dumps(doc, allow_nan=False)
+    doc = report
     for key in ("recording", "methods", "satellite_subsets", "clock_drift",
                 "single_satellite_heading", "structure", "realtime_factor", "timing_ms"):
         assert key in doc, key
@@ -95,17 +101,17 @@ def test_single_satellite_heading(report: dict) -> None:
     assert ss["worst_all_six_snapshot_std_deg"] < ss["worst_single_baseline_snapshot_std_deg"]
 
 
-def test_structure_and_plots(report: dict) -> None:
+def test_structure_and_plots(report: dict, typed: ReplayReport) -> None:
     st = report["structure"]
     assert st["points"] > 100 and st["matched"] > 20
     assert sum(b["points"] for b in st["bands"]) == st["points"]
     assert st["median_m"] < 2.0
-    assert "_arrays" not in st
-    plots = Path(report["_plots_dir"])
+    written = {Path(p).name for p in report["plots"]}
     for name in ("trajectories", "horizontal_error", "heading_error", "structure"):
-        png = plots / f"{name}.png"
+        assert f"{name}.png" in written
+        png = Path(report["plots"][0]).parent / f"{name}.png"
         assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
-    text = format_replay_report(report)
+    text = format_replay_report(typed)
     for needle in ("table 17", "tables 18-20", "table 21", "fig. 14", "structure",
                    "realtime factor"):
         assert needle in text
@@ -132,4 +138,4 @@ def test_recording_without_reference_is_an_error(tmp_path: Path, capsys) -> None
 
 def test_window_beyond_the_recording_is_an_error() -> None:
     with pytest.raises(ValueError, match="no window"):
-        replay_report(BUNDLED, init_s=20.0, end_s=15.0, progress=False)
+        replay_report(BUNDLED, ReportOptions(init_s=20.0, end_s=15.0))

@@ -328,11 +328,11 @@ def test_error_malformed_number(tmp_path):
     expect_error(path, 10, "malformed epoch time")
 
 
-def test_error_rinex2_and_not_rinex(tmp_path):
-    path = tmp_path / "old.obs"
-    path.write_text(h("     2.11           OBSERVATION DATA    M (MIXED)",
+def test_error_rinex4_and_not_rinex(tmp_path):
+    path = tmp_path / "new.obs"
+    path.write_text(h("     4.00           OBSERVATION DATA    M (MIXED)",
                       "RINEX VERSION / TYPE") + "\n")
-    expect_error(path, 1, "version 2.11 is not supported")
+    expect_error(path, 1, "version 4.00 is not supported (only 2.xx and 3.xx)")
     path.write_text("time,x,y\n1,2,3\n")
     expect_error(path, 1, "not a RINEX observation file")
     path.write_text(NAV.read_text())

@@ -33,10 +33,10 @@ def test_large_ship_recording_loads_and_is_consistent(large_ship: Path) -> None:
     assert ref is not None
     speed = np.linalg.norm(ref.velocity_ned[:, :2], axis=1)
     assert speed.max() < 0.25  # a large ship creeps alongside
-    # Camera ~20 m above the sea.
+    # The bridge camera 16-28 m above the sea (each seed draws its height, variety.py).
     C_b_l = euler_to_dcm(*np.radians(ref.euler_deg[0]))
     cam = ref.position_ned[0] + C_b_l @ rec.calibration.camera.lever_arm_body
-    assert -24.0 < cam[2] < -16.0
+    assert -28.5 < cam[2] < -15.5
     frame = rec.read_frame(15)
     assert frame.shape == (600, 960, 3) and frame.std() > 20
 

@@ -1,4 +1,4 @@
-"""Designated-target tracking (estimator/tracking.py) and its evaluation (backend/reports/
+"""Designated-target tracking (estimator/tracking.py) and its evaluation (evaluation/
 tracking.py).
 
 The tracker runs on short sequences rendered by the simulator (recordings.sim.scene) from the
@@ -9,6 +9,7 @@ run of the evaluation on the simulated test recording.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import cv2
@@ -17,7 +18,7 @@ import pytest
 
 from estimator.frames import rot_z
 from estimator.landmarks import SolvedViews
-from estimator.records import CameraCalibration
+from estimator.records import CameraCalibration, CameraView
 from estimator.tracking import (
     DesignatedTarget,
     TargetParams,
@@ -29,6 +30,7 @@ from estimator.tracking import (
 from recordings.sim.motion import ShipMotion
 from recordings.sim.scenarios import SMALL_BOAT
 from recordings.sim.scene import PortScene, camera_calibration, project_points
+from recordings.sim.variety import reference_look
 
 SEED = 1
 T0 = 62.0  # s: the boat is 15–25 m from the quay wall
@@ -55,8 +57,12 @@ class Sequence:
 
 @pytest.fixture(scope="module")
 def world() -> tuple[PortScene, CameraCalibration, ShipMotion]:
-    return PortScene.build(SMALL_BOAT, SEED), camera_calibration(SMALL_BOAT), \
-        ShipMotion(SMALL_BOAT, SEED)
+    # The tracker's mechanics on the reference look (the simulator's former single look). On
+    # seed 1's own look (overcast: no hue for CAMSHIFT, stone wall, its port mirrored in the
+    # water) the particle cloud strays and a point leaving the image slips 36 px first:
+    # issue 17's robustness work, judged on the seeds, not here.
+    return PortScene.build(SMALL_BOAT, SEED, look=reference_look(SMALL_BOAT)), \
+        camera_calibration(SMALL_BOAT), ShipMotion(SMALL_BOAT, SEED)
 
 
 def true_pose(motion: ShipMotion, cam: CameraCalibration, t: float
@@ -66,14 +72,18 @@ def true_pose(motion: ShipMotion, cam: CameraCalibration, t: float
     return C_l_c, motion.point_position_ned(t, cam.lever_arm_body).reshape(3)
 
 
-def wall_point(scene: PortScene, cam: CameraCalibration, C: np.ndarray, p: np.ndarray,
-               margin: float = 150.0) -> np.ndarray:
-    """A quay-wall scene point well inside the image, nearest the image centre."""
+def wall_point(scene: PortScene, cam: CameraCalibration, poses: list, margin: float = 150.0,
+               min_motion_px: float = 20.0) -> np.ndarray:
+    """A quay-wall scene point well inside the image at the first pose, nearest the image
+    centre among those that move ``min_motion_px`` over the poses (the parallax the
+    triangulation tests need: a point near the focus of expansion has none)."""
     pts, kinds = scene.scene_points()
     sel = np.isin(kinds, WALL_KINDS)
-    uv, depth = project_points(pts[sel], C, p, cam)
+    uv, depth = project_points(pts[sel], *poses[0], cam)
+    uv_end, _ = project_points(pts[sel], *poses[-1], cam)
     ok = (depth > 5.0) & (depth < 30.0) & (uv[:, 0] > margin) & \
-        (uv[:, 0] < cam.width - margin) & (uv[:, 1] > 60) & (uv[:, 1] < cam.height - 60)
+        (uv[:, 0] < cam.width - margin) & (uv[:, 1] > 60) & (uv[:, 1] < cam.height - 60) & \
+        (np.linalg.norm(np.nan_to_num(uv_end - uv), axis=1) > min_motion_px)
     assert ok.any(), "no quay-wall point in view"
     centre = np.array([cam.width / 2, cam.height / 2])
     k = np.flatnonzero(ok)[np.argmin(np.linalg.norm(uv[ok] - centre, axis=1))]
@@ -87,7 +97,7 @@ def along_path(world) -> tuple[Sequence, np.ndarray]:
     times = [T0 + 0.1 * k for k in range(N_FRAMES)]
     poses = [true_pose(motion, cam, t) for t in times]
     seq = Sequence(scene, cam, poses, times)
-    return seq, wall_point(scene, cam, *poses[0])
+    return seq, wall_point(scene, cam, poses)
 
 
 @pytest.fixture(scope="module")
@@ -179,18 +189,22 @@ def test_loss_on_a_blank_or_occluded_frame_and_reacquisition(along_path):
 
 def test_systematic_resampling_counts():
     w = np.array([0.5, 0.25, 0.25, 0.0])
-    idx = resample_indexes(w)
-    np.testing.assert_array_equal(np.bincount(idx, minlength=4), [2, 1, 1, 0])
     rng = np.random.default_rng(3)
+    idx = resample_indexes(w, rng)
+    np.testing.assert_array_equal(np.bincount(idx, minlength=4), [2, 1, 1, 0])
     for _ in range(20):
         w = rng.random(20) ** 3
-        counts = np.bincount(resample_indexes(w), minlength=20)
+        counts = np.bincount(resample_indexes(w, rng), minlength=20)
         expected = 20 * w / w.sum()
         # systematic resampling: every count is the floor or the ceiling of N w
         assert counts.sum() == 20 and np.all(np.abs(counts - expected) < 1.0 + 1e-9)
     # unnormalised weights are normalised; a weight of zero is never drawn
-    idx = resample_indexes(np.array([0.0, 3.0, 1.0]))
+    idx = resample_indexes(np.array([0.0, 3.0, 1.0]), rng)
     assert 0 not in idx and np.bincount(idx, minlength=3)[1] >= 2
+    # the tracker's generator alone decides: the same seed, the same draw
+    draws = [resample_indexes(rng.random(20), np.random.default_rng(7)) for rng in
+             (np.random.default_rng(1), np.random.default_rng(1))]
+    np.testing.assert_array_equal(draws[0], draws[1])
 
 
 def test_init_outside_the_image_is_refused(along_path):
@@ -215,13 +229,13 @@ def test_designated_target_locks_its_distance_and_reacquires(along_path):
     ray = point - p0
     start = p0 + 1.15 * ray
     pose_cov = np.diag([1e-4] * 3 + [np.radians(0.02) ** 2] * 3)
-    tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None, C0, p0, pose_cov,
-                           params=TargetParams(), seed=0)
+    tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None,
+                           CameraView(math.nan, C0, p0, pose_cov), params=TargetParams(), seed=0)
     d0 = abs(np.linalg.norm(start - p0) - np.linalg.norm(point - p0))
     states = []
     for k in range(1, N_FRAMES):
         img = seq.images[k] if k != 12 else np.zeros_like(seq.images[k])
-        states.append(tgt.update(T0 + 0.1 * k, img, *seq.poses[k], pose_cov))
+        states.append(tgt.update(img, CameraView(T0 + 0.1 * k, *seq.poses[k], pose_cov)))
     assert states[11].status == "lost" and states[11].uv is None  # the blank frame
     assert states[12].status == "tracking"
     tracked = [s for s in states if s.status == "tracking"]
@@ -232,7 +246,7 @@ def test_designated_target_locks_its_distance_and_reacquires(along_path):
     assert states[-1].distance_sigma_m < 0.5 * np.linalg.norm(point - p)
     assert states[-1].views == len(tracked)
     # a seek back to frame 5: resumed from the projection of the 3-D point
-    back = tgt.resume(T0 + 0.5, seq.images[5], *seq.poses[5], pose_cov)
+    back = tgt.resume(seq.images[5], CameraView(T0 + 0.5, *seq.poses[5], pose_cov))
     assert back.status == "tracking" and back.reacquired
     assert np.linalg.norm(back.uv - truth[5]) < 2.0
 
@@ -251,12 +265,13 @@ def test_designated_target_reanchors_on_converged_structure(along_path):
     results = {}
     for name, sigma, refine in (("converged", 0.05, True), ("converging", 3.0, True),
                                 ("water-plane", 0.05, False)):
-        tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None, C0, p0,
-                               params=TargetParams(), seed=0, refine=refine)
+        tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None,
+                               CameraView(math.nan, C0, p0), params=TargetParams(), seed=0,
+                               refine=refine)
         C, p = seq.poses[1]
-        tgt.update(T0 + 0.1, seq.images[1], C, p)
+        tgt.update(seq.images[1], CameraView(T0 + 0.1, C, p))
         uv = project_points(around, C, p, seq.cam)[0]
-        done = tgt.reanchor(around, np.full(len(around), sigma), uv, C, p)
+        done = tgt.reanchor(around, np.full(len(around), sigma), uv, CameraView(T0 + 0.1, C, p))
         results[name] = (done, np.linalg.norm(tgt.position_ned - point))
     d0 = np.linalg.norm(start - point)
     assert results["converged"][0] and results["converged"][1] < 0.1 < 0.5 * d0
@@ -283,8 +298,8 @@ def test_target_tracked_back_and_triangulated_in_the_solved_views(along_path):
     C, p = seq.poses[-1]
     start = p + 1.15 * (point - p)
     d_true = np.linalg.norm(point - p)
-    tgt = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None, C, p,
-                           params=TargetParams(), seed=0, t=times[-1],
+    tgt = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None,
+                           CameraView(times[-1], C, p), params=TargetParams(), seed=0,
                            earlier_frames=list(zip(times[:-1], seq.images[:-1], strict=True)))
     assert len(tgt.seen) == N_FRAMES  # every earlier frame tracked back, and the click
     np.testing.assert_allclose(tgt.seen.t, times)
@@ -295,15 +310,15 @@ def test_target_tracked_back_and_triangulated_in_the_solved_views(along_path):
     assert tgt.refine(views) == N_FRAMES and tgt.refined
     # 1.7 m of baseline, mostly along the line of sight, at 18 m: σ along the ray ~1 m
     err = abs(np.linalg.norm(tgt.position_ned - p) - d_true)
-    state = tgt.update(times[-1] + 0.1, seq.images[-1], C, p)
+    state = tgt.update(seq.images[-1], CameraView(times[-1] + 0.1, C, p))
     assert err < 0.3 * 0.15 * d_true and err < 2 * state.distance_sigma_m, err
-    lone = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None, C, p,
-                            params=TargetParams(), seed=0, t=times[-1])
+    lone = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None,
+                            CameraView(times[-1], C, p), params=TargetParams(), seed=0)
     assert lone.refine(views) == 0 and not lone.refined
     np.testing.assert_allclose(lone.position_ned, start)
     # a water-plane target (refine=False) is never moved
-    water = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None, C, p, seed=0,
-                             t=times[-1], refine=False,
+    water = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None,
+                             CameraView(times[-1], C, p), seed=0, refine=False,
                              earlier_frames=list(zip(times[:-1], seq.images[:-1], strict=True)))
     assert len(water.seen) == 0 and water.refine(views) == 0
 
@@ -325,12 +340,12 @@ def test_refined_target_ignores_the_fused_heading_wander(along_path):
     # the tracker's pixel noise on these renderings (0.1 px measured), with a margin
     params = TargetParams(landmark=replace(TargetParams().landmark, pixel_sigma_px=0.3))
     ekf_only, refined = (DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None,
-                                          *fused[0], pose_cov, params=params, seed=0,
-                                          t=times[0]) for _ in range(2))
+                                          CameraView(times[0], *fused[0], pose_cov),
+                                          params=params, seed=0) for _ in range(2))
     views = solved_views(seq, times)
     for k in range(1, N_FRAMES):
         for tgt in (ekf_only, refined):
-            tgt.update(times[k], seq.images[k], *fused[k], pose_cov)
+            tgt.update(seq.images[k], CameraView(times[k], *fused[k], pose_cov))
         if k == 10:
             assert refined.refine(views) == 11
             kept = refined.position_ned
@@ -410,22 +425,22 @@ def test_nearest_surface_prefers_the_foreground_unless_a_point_is_clicked():
 
 
 def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
-    """The report functions end to end on the 12 s test recording (quay far away: a click
-    on a building corner); figures are checked for shape and sanity only."""
-    from backend.reports.tracking import (
-        Click,
-        evaluate_landmarks,
-        evaluate_tracking,
-        format_tracking_report,
-        run_fusion,
-    )
+    """The evaluation end to end on the 12 s test recording (quay far away: a click on a
+    building corner), through the engine path; figures are checked for shape and sanity."""
+    from engine.driver import run_vo
+    from estimator.frames import euler_to_dcm
+    from estimator.pipeline import FusionOptions
+    from evaluation.landmarks import evaluate_landmarks
+    from evaluation.records import to_json
+    from evaluation.runs import Collect, fuse
+    from evaluation.text import format_tracking_report
+    from evaluation.tracking import evaluate_tracking
+    from evaluation.truth import Click
     from recordings.format import load
 
     rec = load(sim_recording)
     k = 100  # the structure has converged points by then (10 s into the recording)
     pos, _v, e = rec.reference.interpolate(rec.frame_times[k])
-    from estimator.frames import euler_to_dcm
-
     C_bl = euler_to_dcm(*e)
     cam = rec.calibration.camera
     C = (C_bl @ cam.C_camera_to_body).T
@@ -433,25 +448,28 @@ def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
     uv, depth = project_points(rec.scene_points, C, c, cam)
     ok = np.flatnonzero((depth > 0) & (uv[:, 0] > 200) & (uv[:, 0] < 760) & (uv[:, 1] > 100)
                         & (uv[:, 1] < 500))
-    run_ = run_fusion(rec, snapshot_frames=[k])
-    assert run_.origin_time is not None and k in run_.structure_at
+    run_ = fuse(rec, run_vo(rec), FusionOptions(), "full", np.inf,
+                Collect(structures_from=k, landmarks=True))
+    assert run_.origin_time is not None and k in run_.structures
     # Click the scene point nearest (in the image) to a reported structure point: only
     # converged landmarks are reported, 10 s into the recording only a few.
-    pts = run_.structure_at[k][0] + rec.reference.interpolate(run_.origin_time)[0]
+    pts = run_.structures[k].points + rec.reference.interpolate(run_.origin_time)[0]
     assert len(pts) > 0
     uv_s, _ = project_points(pts, C, c, cam)
     gap = np.nanmin(np.linalg.norm(uv[ok, None, :] - uv_s[None], axis=2), axis=1)
     j = int(ok[np.argmin(gap)])
     clicks = [Click(frame=k, uv=(float(uv[j, 0]), float(uv[j, 1])), point=j, label="near")]
-    tr = evaluate_tracking(rec, run_, clicks, methods=("designated", "template"))
-    assert set(tr["methods"]) == {"designated", "template"}
+    typed = evaluate_tracking(rec, run_, clicks)
+    tr = to_json(typed)
+    assert set(tr["methods"]) == {"designated", "full", "template", "camshift_pf"}
     d = tr["methods"]["designated"]
     assert d["frames"] == len(rec.frame_times) - k - 1
     assert d["pixel_error"]["n"] > 0 and d["pixel_error"]["median"] < 3.0
     assert d["undetected_loss_frames"] == 0
-    lm = evaluate_landmarks(rec, run_)
+    lm_typed = evaluate_landmarks(rec, run_)
+    lm = to_json(lm_typed)
     assert lm["points"] > 0 and lm["scene_point_match"]["raw"]["points"] > 0
     assert lm["depth_truth"] is not None and lm["error_vs_views"]
     views = [row["views"] for row in lm["error_vs_views"]]
     assert views == sorted(views)
-    assert "Designated-target tracking" in format_tracking_report(tr, lm)
+    assert "Designated-target tracking" in format_tracking_report(typed, lm_typed)

@@ -59,7 +59,7 @@ export class Status {
     } else {
       this._chip("phase", st.phase, PHASE_LEVEL[st.phase] || "warn", st.message);
       this._chip("compass", st.compass_fixed ? "fixed" : "float", st.compass_fixed ? "ok" : "bad");
-      // >= 4 satellites keep the carrier-phase velocity (SPEC 5); fewer degrade it
+      // >= 4 satellites keep the carrier-phase velocity (thesis tables 18–19); fewer degrade it
       this._chip("sats", String(st.satellites), st.satellites >= 4 ? "ok" : st.satellites > 0 ? "warn" : "bad");
       this._chip("vo", st.vo_status, st.vo_status === "tracking" ? "ok" : st.vo_status === "lost" ? "bad" : "warn");
       this._chip("scale", st.scale_converged ? "converged" : "converging",

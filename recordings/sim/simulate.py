@@ -21,6 +21,7 @@ from .imu import simulate_imu
 from .motion import ShipMotion
 from .scenarios import SCENARIOS, Scenario
 from .scene import PortScene, camera_calibration
+from .variety import seeded
 
 NAV_FILE = Path(__file__).resolve().parent.parent / "data" / "nagoya_2024-06-24.nav"
 FRAME_RATE_HZ = 10.0
@@ -110,7 +111,8 @@ def simulate(
     """Simulate ``scenario_name`` with ``seed`` into the directory ``out`` and return it."""
     if scenario_name not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario_name!r}; choose one of {sorted(SCENARIOS)}")
-    scenario: Scenario = SCENARIOS[scenario_name]
+    # the seed draws the port, light, water, camera mounting and manoeuvre (variety)
+    scenario: Scenario = seeded(SCENARIOS[scenario_name], seed)
     duration = float(duration_s if duration_s is not None else scenario.duration_s)
     if not 1.0 <= duration <= scenario.duration_s:
         raise ValueError(

@@ -12,20 +12,31 @@ With surveyed positions (``--surveyed`` or ``<obs stem>_position.txt`` beside ea
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from estimator.baseline import RelativePositioning, same_carrier_epoch
+from estimator.cpp import (
+    SAME_CARRIER_SYSTEMS,
+    align_epochs,
+    epoch_geometry,
+    eta_observations,
+    loose_velocity,
+)
+from estimator.frames import SPEED_OF_LIGHT, ecef_to_ned, geodetic_to_ecef
+from estimator.records import GnssEpoch, NavigationData
+from estimator.spp import StandalonePosition, standalone_position
+from recordings.rinex import l1_epochs, read_nav, read_obs
+
 # A fixed baseline further than this from the surveyed one has wrong integers (the nearest
 # wrong integer set moves it by a large fraction of the 19 cm wavelength).
 WRONG_FIX_M = 0.05
 
 
-def _read_position(path: Path) -> np.ndarray:
+def read_position(path: Path) -> np.ndarray:
     values = [float(v) for v in path.read_text().split()[:3]]
     if len(values) != 3:
         raise ValueError(f"{path}: expected 'lat lon height' (deg, deg, m)")
@@ -34,12 +45,10 @@ def _read_position(path: Path) -> np.ndarray:
 
 def _auto_position(obs_path: Path) -> np.ndarray | None:
     candidate = obs_path.with_name(obs_path.stem + "_position.txt")
-    return _read_position(candidate) if candidate.is_file() else None
+    return read_position(candidate) if candidate.is_file() else None
 
 
 def _epochs(obs: Any) -> list:
-    from recordings.rinex import l1_epochs, read_obs
-
     if isinstance(obs, str | Path):
         return l1_epochs(read_obs(obs))
     return list(obs)
@@ -53,11 +62,8 @@ def _stats(values: list[float]) -> dict[str, float | None]:
             "max": float(a.max())}
 
 
-def _standalone(epochs: list, nav: Any) -> list:
+def _standalone(epochs: list, nav: NavigationData) -> list[StandalonePosition | None]:
     """Standalone solution (GPS/Galileo/QZSS) of every epoch of one receiver, or None."""
-    from estimator.baseline import same_carrier_epoch
-    from estimator.spp import standalone_position
-
     out, position = [], None
     for ep in epochs:
         spp = standalone_position(same_carrier_epoch(ep), nav, initial_ecef=position)
@@ -69,9 +75,6 @@ def _standalone(epochs: list, nav: Any) -> list:
 
 def _velocity_of(epochs: list, spps: list, nav: Any) -> dict[str, Any]:
     """TDCP velocity of one receiver at every epoch (its own position and clock)."""
-    from estimator.cpp import SAME_CARRIER_SYSTEMS, epoch_geometry, eta_observations, loose_velocity
-    from estimator.frames import SPEED_OF_LIGHT
-
     prev_epoch = prev_geo = None
     position, clock = None, 0.0
     v_ned, excluded = [], {}
@@ -108,6 +111,9 @@ def _velocity_of(epochs: list, spps: list, nav: Any) -> dict[str, Any]:
     }
 
 
+Rows = list[tuple[float, GnssEpoch, GnssEpoch]]  # common epochs: time, base, rover
+
+
 def baseline_report(
     base_obs: str | Path | list,
     rover_obs: str | Path | list,
@@ -125,40 +131,67 @@ def baseline_report(
     ``base_obs``/``rover_obs``: RINEX paths or lists of ``GnssEpoch``; ``nav``: a path or a
     ``NavigationData``. ``as_json`` adds the per-epoch series. Returns plain Python types.
     """
-    from estimator.baseline import RelativePositioning
-    from estimator.cpp import align_epochs
-    from estimator.frames import ecef_to_ned, geodetic_to_ecef
-    from recordings.rinex import read_nav
-
     if base_position_llh_deg is None and isinstance(base_obs, str | Path):
         base_position_llh_deg = _auto_position(Path(base_obs))
     if rover_position_llh_deg is None and isinstance(rover_obs, str | Path):
         rover_position_llh_deg = _auto_position(Path(rover_obs))
     nav_data = read_nav(nav) if isinstance(nav, str | Path) else nav
-    a, b = _epochs(base_obs), _epochs(rover_obs)
-    rows = [(t, ea, eb) for t, (ea, eb) in align_epochs([a, b])
+    rows = [(t, ea, eb) for t, (ea, eb) in align_epochs([_epochs(base_obs), _epochs(rover_obs)])
             if ea is not None and eb is not None]
     if len(rows) < 2:
         raise ValueError("the two files have fewer than 2 common epochs")
     interval = float(np.median(np.diff([r[0] for r in rows])))
-
-    truth = None
-    if base_position_llh_deg is not None and rover_position_llh_deg is not None:
-        bl = np.asarray(base_position_llh_deg, dtype=float)
-        rl = np.asarray(rover_position_llh_deg, dtype=float)
-        base_llh = np.array([math.radians(bl[0]), math.radians(bl[1]), bl[2]])
-        rover_ecef = geodetic_to_ecef(math.radians(rl[0]), math.radians(rl[1]), rl[2])
-        truth = ecef_to_ned(rover_ecef, base_llh)
-
+    truth = _surveyed_baseline(base_position_llh_deg, rover_position_llh_deg)
     # Standalone solutions once per epoch and receiver, shared by every run below.
-    spp_a = _standalone([r[1] for r in rows], nav_data)
-    spp_b = _standalone([r[2] for r in rows], nav_data)
+    spps = (_standalone([r[1] for r in rows], nav_data),
+            _standalone([r[2] for r in rows], nav_data))
+    per_epoch = _continuous(rows, spps, nav_data, elevation_mask_deg)
+    fixed = [p for p in per_epoch if p["fixed"]]
+    restarts = _restarts(rows, spps, nav_data, elevation_mask_deg, interval, restart_every_s,
+                         max_time_to_fix_s, truth)
+    ttf = [r["time_to_fix_s"] for r in restarts if r["time_to_fix_s"] is not None]
+    report: dict[str, Any] = {
+        "epochs": len(rows),
+        "interval_s": interval,
+        "fixed_fraction": len(fixed) / max(len(per_epoch), 1),
+        "fixed": {key: _stats([p[key] for p in fixed])
+                  for key in ("north", "east", "up", "length", "azimuth_deg")},
+        "restarts": restarts,
+        "time_to_fix": {
+            "restarts": len(restarts),
+            "fixed": len(ttf),
+            "max_s": max(ttf) if ttf else None,
+            "median_s": float(np.median(ttf)) if ttf else None,
+        },
+        "velocity": {"base": _velocity_of([r[1] for r in rows], spps[0], nav_data),
+                     "rover": _velocity_of([r[2] for r in rows], spps[1], nav_data)},
+    }
+    if truth is not None:
+        report["surveyed"] = _surveyed_scores(truth, fixed, restarts, report["fixed"])
+    if as_json:
+        report["per_epoch"] = per_epoch
+    return report
 
-    # One continuous run: the baseline at every epoch.
-    rp = RelativePositioning(nav_data, elevation_mask_deg=elevation_mask_deg)
+
+def _surveyed_baseline(base_llh_deg: np.ndarray | None, rover_llh_deg: np.ndarray | None
+                       ) -> np.ndarray | None:
+    """The surveyed base → rover baseline (NED at the base), None without both positions."""
+    if base_llh_deg is None or rover_llh_deg is None:
+        return None
+    bl = np.asarray(base_llh_deg, dtype=float)
+    rl = np.asarray(rover_llh_deg, dtype=float)
+    base_llh = np.array([math.radians(bl[0]), math.radians(bl[1]), bl[2]])
+    rover_ecef = geodetic_to_ecef(math.radians(rl[0]), math.radians(rl[1]), rl[2])
+    return ecef_to_ned(rover_ecef, base_llh)
+
+
+def _continuous(rows: Rows, spps: tuple[list, list], nav: NavigationData,
+                elevation_mask_deg: float) -> list[dict[str, Any]]:
+    """One continuous run: the baseline at every epoch."""
+    rp = RelativePositioning(nav, elevation_mask_deg=elevation_mask_deg)
     per_epoch = []
     for k, (t, ea, eb) in enumerate(rows):
-        sol = rp.update(ea, eb, spp_a[k], spp_b[k])
+        sol = rp.update(ea, eb, spps[0][k], spps[1][k])
         if sol is None:
             continue
         n, e, d = (float(x) for x in sol.baseline_ned)
@@ -167,21 +200,24 @@ def baseline_report(
                           # JSON has no infinity: a float vector that is exactly integer
                           "ratio": float(sol.ratio) if math.isfinite(sol.ratio) else None,
                           "satellites": sol.n_satellites})
-    fixed = [p for p in per_epoch if p["fixed"]]
+    return per_epoch
 
-    # Cold starts at regular restarts.
+
+def _restarts(rows: Rows, spps: tuple[list, list], nav: NavigationData,
+              elevation_mask_deg: float, interval: float, restart_every_s: float,
+              max_time_to_fix_s: float, truth: np.ndarray | None) -> list[dict[str, Any]]:
+    """Cold starts at regular restarts: time to fix and the fixed baseline."""
     restarts = []
-    t0, t_end = rows[0][0], rows[-1][0]
-    start = t0
+    start, t_end = rows[0][0], rows[-1][0]
     while start <= t_end - 1e-6:
-        rp = RelativePositioning(nav_data, elevation_mask_deg=elevation_mask_deg)
+        rp = RelativePositioning(nav, elevation_mask_deg=elevation_mask_deg)
         entry: dict[str, Any] = {"start_gpst": start, "time_to_fix_s": None}
         for k, (t, ea, eb) in enumerate(rows):
             if t < start - 1e-6:
                 continue
             if t - start > max_time_to_fix_s:
                 break
-            sol = rp.update(ea, eb, spp_a[k], spp_b[k])
+            sol = rp.update(ea, eb, spps[0][k], spps[1][k])
             if sol is not None and sol.fixed:
                 entry.update(time_to_fix_s=t - start + interval, length=sol.length,
                              azimuth_deg=sol.azimuth_deg)
@@ -190,48 +226,27 @@ def baseline_report(
                 break
         restarts.append(entry)
         start += restart_every_s
-    ttf = [r["time_to_fix_s"] for r in restarts if r["time_to_fix_s"] is not None]
+    return restarts
 
-    report: dict[str, Any] = {
-        "epochs": len(rows),
-        "interval_s": interval,
-        "fixed_fraction": len(fixed) / max(len(per_epoch), 1),
-        "fixed": {
-            "north": _stats([p["north"] for p in fixed]),
-            "east": _stats([p["east"] for p in fixed]),
-            "up": _stats([p["up"] for p in fixed]),
-            "length": _stats([p["length"] for p in fixed]),
-            "azimuth_deg": _stats([p["azimuth_deg"] for p in fixed]),
-        },
-        "restarts": restarts,
-        "time_to_fix": {
-            "restarts": len(restarts),
-            "fixed": len(ttf),
-            "max_s": max(ttf) if ttf else None,
-            "median_s": float(np.median(ttf)) if ttf else None,
-        },
-        "velocity": {"base": _velocity_of([r[1] for r in rows], spp_a, nav_data),
-                     "rover": _velocity_of([r[2] for r in rows], spp_b, nav_data)},
+
+def _surveyed_scores(truth: np.ndarray, fixed: list[dict[str, Any]],
+                     restarts: list[dict[str, Any]], stats: dict[str, Any]) -> dict[str, Any]:
+    """The fixed baselines against the surveyed one: errors and wrong fixes."""
+    length = float(np.linalg.norm(truth))
+    az = float(np.degrees(np.arctan2(truth[1], truth[0])) % 360.0)
+    errors = [np.linalg.norm(np.array([p["north"], p["east"], -p["up"]]) - truth)
+              for p in fixed]
+    wrong = sum(1 for x in errors if x > WRONG_FIX_M)
+    wrong += sum(1 for r in restarts if r.get("error_m", 0.0) > WRONG_FIX_M)
+    return {
+        "north": float(truth[0]), "east": float(truth[1]), "up": float(-truth[2]),
+        "length": length, "azimuth_deg": az,
+        "length_error_m": (stats["length"]["mean"] - length) if fixed else None,
+        "azimuth_error_deg": (float((stats["azimuth_deg"]["mean"] - az + 180.0) % 360.0 - 180.0)
+                              if fixed else None),
+        "max_error_m": float(max(errors)) if errors else None,
+        "wrong_fixes": wrong,
     }
-    if truth is not None:
-        length = float(np.linalg.norm(truth))
-        az = float(np.degrees(np.arctan2(truth[1], truth[0])) % 360.0)
-        errors = [np.linalg.norm(np.array([p["north"], p["east"], -p["up"]]) - truth)
-                  for p in fixed]
-        wrong = sum(1 for x in errors if x > WRONG_FIX_M)
-        wrong += sum(1 for r in restarts if r.get("error_m", 0.0) > WRONG_FIX_M)
-        report["surveyed"] = {
-            "north": float(truth[0]), "east": float(truth[1]), "up": float(-truth[2]),
-            "length": length, "azimuth_deg": az,
-            "length_error_m": (report["fixed"]["length"]["mean"] - length) if fixed else None,
-            "azimuth_error_deg": (float((report["fixed"]["azimuth_deg"]["mean"] - az + 180.0)
-                                        % 360.0 - 180.0) if fixed else None),
-            "max_error_m": float(max(errors)) if errors else None,
-            "wrong_fixes": wrong,
-        }
-    if as_json:
-        report["per_epoch"] = per_epoch
-    return report
 
 
 def _fmt(x: Any, spec: str = ".4f") -> str:
@@ -274,31 +289,3 @@ def format_baseline_report(report: dict[str, Any]) -> str:
         else:
             lines.append(f"  {name:<33} no solution")
     return "\n".join(lines)
-
-
-def cmd_baseline(args: argparse.Namespace) -> int:
-    base_pos = rover_pos = None
-    if args.surveyed:
-        base_pos, rover_pos = (_read_position(Path(p)) for p in args.surveyed)
-    report = baseline_report(args.base, args.rover, args.nav, as_json=args.json,
-                             restart_every_s=args.restart_every,
-                             base_position_llh_deg=base_pos, rover_position_llh_deg=rover_pos)
-    print(json.dumps(report, indent=2) if args.json else format_baseline_report(report))
-    return 0
-
-
-def add_baseline_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``berthing-aid baseline BASE.obs ROVER.obs NAV [--json]``."""
-    p = sub.add_parser("baseline", help="two-receiver carrier-phase baseline, time to fix, "
-                                        "TDCP velocity (real RINEX files)")
-    p.add_argument("base", help="RINEX observation file of the base receiver")
-    p.add_argument("rover", help="RINEX observation file of the rover receiver")
-    p.add_argument("nav", help="RINEX navigation file")
-    p.add_argument("--json", action="store_true", help="JSON with the per-epoch baselines")
-    p.add_argument("--restart-every", type=float, default=20.0, metavar="S",
-                   help="cold-start restarts every S seconds (default 20)")
-    p.add_argument("--surveyed", nargs=2, metavar=("BASE_POS", "ROVER_POS"),
-                   help="files 'lat lon h' (deg, deg, m) of the surveyed antennas "
-                        "(default: <obs stem>_position.txt beside each file, if present)")
-    p.set_defaults(func=cmd_baseline)
-    return p

@@ -17,13 +17,26 @@ of the thesis' experiment (fig. 12). ``gps_only`` restricts both compass and vel
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from estimator.compass import GnssCompass, tilt_from_specific_force
+from estimator.cpp import (
+    EpochGeometry,
+    TightVelocityFilter,
+    align_epochs,
+    epoch_geometry,
+    eta_observations,
+    loose_velocity,
+    tight_velocity,
+)
+from estimator.frames import SPEED_OF_LIGHT, euler_to_dcm, ned_to_ecef, wrap_angle
+from estimator.records import GnssEpoch
+from estimator.spp import standalone_position
+from recordings.format import Recording, load
 
 WRONG_FIX_DEG = 3.0
 SWITCH_CONFIGS = ("4 satellites, one per receiver", "3 satellites", "2 satellites")
@@ -34,9 +47,8 @@ def _rms(values: list[float] | np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(a**2))) if a.size else None
 
 
-def _filter_epoch(ep: Any, keep: set[str] | None, systems: str) -> Any:
-    from estimator.records import GnssEpoch
-
+def _filter_epoch(ep: GnssEpoch | None, keep: set[str] | None, systems: str
+                  ) -> GnssEpoch | None:
     if ep is None:
         return None
     return GnssEpoch(ep.time, {s: o for s, o in ep.satellites.items()
@@ -46,11 +58,8 @@ def _filter_epoch(ep: Any, keep: set[str] | None, systems: str) -> Any:
 class _Prepared:
     """Per-epoch inputs shared by the compass trials and the velocity pass."""
 
-    def __init__(self, rec: Any, systems: str, sky_mask_deg: float, centre_deg: float) -> None:
-        from estimator.compass import tilt_from_specific_force
-        from estimator.cpp import align_epochs, epoch_geometry
-        from estimator.frames import ned_to_ecef
-
+    def __init__(self, rec: Recording, systems: str, sky_mask_deg: float,
+                 centre_deg: float) -> None:
         self.rec = rec
         self.nav = rec.nav
         self.antennas = np.asarray(rec.calibration.antennas_body, dtype=float)
@@ -100,8 +109,6 @@ class _Prepared:
 
     def centroid_velocity(self, t1: float, t2: float) -> np.ndarray:
         """True mean velocity of the antenna centroid over [t1, t2] (NED m/s)."""
-        from estimator.frames import euler_to_dcm
-
         ends = []
         for t in (t1, t2):
             pos, _, eul = self.rec.reference.interpolate(t)
@@ -114,9 +121,6 @@ class _Prepared:
 
 def _run_trials(prep: _Prepared, method: str, starts: list[int], systems: str,
                 max_window_s: float, hold_window_s: float) -> dict[str, Any]:
-    from estimator.compass import GnssCompass
-    from estimator.frames import wrap_angle
-
     per_trial, errors, first_errors = [], [], []
     for s in starts:
         comp = GnssCompass(prep.nav, prep.antennas, method=method, systems=systems)
@@ -171,28 +175,63 @@ def _run_trials(prep: _Prepared, method: str, starts: list[int], systems: str,
 # ------------------------------------------------------------------------ velocity
 
 
-def _velocity_pass(prep: _Prepared, reduced_after_s: float) -> dict[str, Any]:
-    from estimator.compass import GnssCompass
-    from estimator.cpp import (
-        TightVelocityFilter,
-        epoch_geometry,
-        eta_observations,
-        loose_velocity,
-        tight_velocity,
-    )
-    from estimator.frames import SPEED_OF_LIGHT
-    from estimator.spp import standalone_position
+class _VelocityErrors:
+    """The array velocity errors of one satellite configuration over the pass."""
 
-    levers = prep.antennas - prep.centroid
+    def __init__(self) -> None:
+        self.filter = TightVelocityFilter(vertical_sigma_mps=0.1)
+        self.errors: dict[str, list[np.ndarray]] = {"loose": [], "tight": [], "tight filter": []}
+        self.count = 0
+        self.prev: list[GnssEpoch | None] | None = None
+
+    def step(self, prep: _Prepared, cur: list[GnssEpoch | None], prev_geo: EpochGeometry | None,
+             geo: EpochGeometry, C: np.ndarray | None, scored: bool) -> None:
+        """One epoch: loose (mean of the receivers' TDCP), tight snapshot and tight filter."""
+        if self.prev is not None and prev_geo is not None:
+            t = geo.time
+            eta = eta_observations(self.prev, cur, prev_geo, geo)
+            truth = prep.centroid_velocity(prev_geo.time, t)
+            self.count += int(scored)
+            loose = [loose_velocity(eta.for_antenna(i), geo.C_ecef_to_level) for i in range(4)]
+            lever = dict(lever_arms_body=prep.antennas - prep.centroid if C is not None else None,
+                         C_body_to_level=C, omega_body=prep.gyro_mean(prev_geo.time, t))
+            snap = tight_velocity(eta.rows, **lever)
+            filt = self.filter.step(eta.rows, t, **lever)
+            if scored and all(v is not None for v in loose):
+                self.errors["loose"].append(np.mean([v.velocity_ned for v in loose], 0) - truth)
+            if scored and snap is not None:
+                self.errors["tight"].append(snap.velocity_ned - truth)
+            if scored and filt is not None:
+                self.errors["tight filter"].append(filt.velocity_ned - truth)
+        self.prev = cur
+
+    def summary(self) -> dict[str, Any]:
+        out = {}
+        for name, errs in self.errors.items():
+            E = np.array(errs).reshape(-1, 3)
+            out[name] = {"solved_fraction": len(E) / max(self.count, 1),
+                         "horizontal_rms_mps": _rms(np.hypot(E[:, 0], E[:, 1])),
+                         "vertical_rms_mps": _rms(E[:, 2])}
+        return out
+
+
+def _configured(c: str, eps: list[GnssEpoch | None], kept: dict[str, list[str]]
+                ) -> list[GnssEpoch | None]:
+    """The epochs of one satellite configuration (all until the switch)."""
+    if c == "all satellites" or not kept:
+        return eps
+    if c == SWITCH_CONFIGS[0]:
+        # Thesis table 21: each receiver tracks a different single satellite.
+        return [_filter_epoch(e, set(kept[c][i:i + 1]), "GEJRC") for i, e in enumerate(eps)]
+    return [_filter_epoch(e, set(kept[c]), "GEJRC") for e in eps]
+
+
+def _velocity_pass(prep: _Prepared, reduced_after_s: float) -> dict[str, Any]:
     compass = GnssCompass(prep.nav, prep.antennas, method="fast")
     t_switch = prep.times[0] + reduced_after_s
     configs = ("all satellites", *SWITCH_CONFIGS)
-    filters = {c: TightVelocityFilter(vertical_sigma_mps=0.1) for c in configs}
-    errors: dict[str, dict[str, list]] = {c: {"loose": [], "tight": [], "tight filter": []}
-                                          for c in configs}
-    counts = {c: 0 for c in configs}
+    passes = {c: _VelocityErrors() for c in configs}
     kept: dict[str, list[str]] = {}
-    prev: dict[str, list] = {}
     prev_geo = None
     position, clock = None, 0.0
     for k, (t, eps) in enumerate(zip(prep.times, prep.epochs, strict=True)):
@@ -212,46 +251,12 @@ def _velocity_pass(prep: _Prepared, reduced_after_s: float) -> dict[str, Any]:
             kept = {c: common[:n] for c, n in zip(SWITCH_CONFIGS, (4, 3, 2), strict=True)}
         C = sol.C_body_to_level if sol.fixed else None
         for c in configs:
-            cur = eps
-            if c != "all satellites" and kept:
-                if c == SWITCH_CONFIGS[0]:
-                    # Thesis table 21: each receiver tracks a different single satellite.
-                    cur = [_filter_epoch(e, set(kept[c][i:i + 1]), "GEJRC")
-                           for i, e in enumerate(eps)]
-                else:
-                    cur = [_filter_epoch(e, set(kept[c]), "GEJRC") for e in eps]
-            if c in prev and prev_geo is not None:
-                eta = eta_observations(prev[c], cur, prev_geo, geo)
-                omega = prep.gyro_mean(prev_geo.time, t)
-                scored = c == "all satellites" or bool(kept)
-                truth = prep.centroid_velocity(prev_geo.time, t)
-                if scored:
-                    counts[c] += 1
-                loose = [loose_velocity(eta.for_antenna(i), geo.C_ecef_to_level)
-                         for i in range(4)]
-                if scored and all(v is not None for v in loose):
-                    errors[c]["loose"].append(np.mean([v.velocity_ned for v in loose], 0) - truth)
-                lever = dict(lever_arms_body=levers if C is not None else None,
-                             C_body_to_level=C, omega_body=omega)
-                snap = tight_velocity(eta.rows, **lever)
-                if scored and snap is not None:
-                    errors[c]["tight"].append(snap.velocity_ned - truth)
-                filt = filters[c].step(eta.rows, t, **lever)
-                if scored and filt is not None:
-                    errors[c]["tight filter"].append(filt.velocity_ned - truth)
-            prev[c] = cur
+            passes[c].step(prep, _configured(c, eps, kept), prev_geo, geo, C,
+                           scored=c == "all satellites" or bool(kept))
         prev_geo = geo
     out: dict[str, Any] = {"reduced_after_s": reduced_after_s,
                            "kept_satellites": {c: kept.get(c) for c in SWITCH_CONFIGS}}
-    for c in configs:
-        out[c] = {}
-        for name, errs in errors[c].items():
-            E = np.array(errs).reshape(-1, 3)
-            out[c][name] = {
-                "solved_fraction": len(E) / max(counts[c], 1),
-                "horizontal_rms_mps": _rms(np.hypot(E[:, 0], E[:, 1])),
-                "vertical_rms_mps": _rms(E[:, 2]),
-            }
+    out.update({c: passes[c].summary() for c in configs})
     return out
 
 
@@ -302,8 +307,6 @@ def compass_report(recording_path: str | Path, trials: int = 20, gps_only: bool 
                    sky_mask_deg: float = 0.0, as_json: bool = False, **options: Any
                    ) -> dict[str, Any]:
     """Load a recording (``recordings.format.load``) and run :func:`compass_report_for`."""
-    from recordings.format import load
-
     return compass_report_for(load(recording_path), trials=trials, gps_only=gps_only,
                               sky_mask_deg=sky_mask_deg, as_json=as_json, **options)
 
@@ -342,28 +345,3 @@ def format_compass_report(report: dict[str, Any]) -> str:
                              f"{_f(s['horizontal_rms_mps'], '9.4f')}  "
                              f"{_f(s['vertical_rms_mps'], '8.4f')}")
     return "\n".join(lines)
-
-
-def cmd_compass(args: argparse.Namespace) -> int:
-    path = args.recording
-    if path is None:
-        path = Path(__file__).resolve().parents[2] / "recordings" / "default"
-    report = compass_report(path, trials=args.trials, gps_only=args.gps_only,
-                            sky_mask_deg=args.sky_mask, as_json=args.json)
-    print(json.dumps(report, indent=2) if args.json else format_compass_report(report))
-    return 0
-
-
-def add_compass_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``berthing-aid compass RECORDING [--json] [--trials N] [--gps-only]
-    [--sky-mask DEG]``."""
-    p = sub.add_parser("compass", help="GNSS compass time to fix / attitude error and "
-                                       "carrier-phase velocity against the reference")
-    p.add_argument("recording", nargs="?", help="recording directory (default: bundled)")
-    p.add_argument("--json", action="store_true", help="JSON with the per-trial results")
-    p.add_argument("--trials", type=int, default=20, help="cold starts (default 20)")
-    p.add_argument("--gps-only", action="store_true", help="GPS satellites only")
-    p.add_argument("--sky-mask", type=float, default=0.0, metavar="DEG",
-                   help="block satellites within +-DEG/2 of north in azimuth (180 = half sky)")
-    p.set_defaults(func=cmd_compass)
-    return p

@@ -1,0 +1,159 @@
+"""Designated targets on the engine path: a click turned into a 3-D point (``designate``) and
+the target followed frame by frame (``FollowedTarget``). The server's sessions and the
+tracking evaluation both use these, so the evaluation measures what the officer sees.
+
+A click takes the port-structure points near its image ray (the nearest surface under the
+click, ``estimator.tracking.structure_point_at``), else the point where the ray meets the water
+plane. From that frame on the point is tracked in the video (``DesignatedTarget``: image
+tracker + a landmark EKF), tracked back through the frames before the click, and re-anchored /
+triangulated on the port structure at most once a second (``TARGET_REFRESH_S``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from estimator.landmarks import SolvedViews, camera_pose_covariance
+from estimator.records import CameraCalibration, CameraView
+from estimator.tracking import (
+    DESIGNATION_RADIUS_PX,
+    DesignatedTarget,
+    TargetParams,
+    TargetState,
+    point_on_ray,
+    structure_point_at,
+)
+
+from .camera import CameraPose, Projector, camera_pose, water_plane_point
+
+TARGET_REFRESH_S = 1.0  # a target is refreshed on the port structure at most this often
+TARGET_WINDOW_PX = 31  # template side of the image tracker at 960 px of image width
+
+
+class DesignationError(ValueError):
+    """Nothing to designate under a click (no structure near it, above the horizon)."""
+
+
+@dataclass(frozen=True)
+class Structure:
+    """The port structure as the engine gave it after one frame (``Fusion.structure``) and the
+    structure window's solved views (``Fusion.solved_views``)."""
+
+    t: float | None  # gpst of that frame; None: nothing yet
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (N,3) NED, m
+    sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (N,) 1-σ, m
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    views: SolvedViews | None = None
+
+    @classmethod
+    def of(cls, engine: Any, t: float) -> Structure:
+        pts, sigma, ids = engine.structure()
+        return cls(float(t), np.array(pts, dtype=float).reshape(-1, 3),
+                   np.array(sigma, dtype=float).ravel(), np.array(ids).ravel(),
+                   engine.solved_views())
+
+
+@dataclass(frozen=True)
+class Designation:
+    """The 3-D point under a click."""
+
+    position_ned: np.ndarray
+    covariance: np.ndarray  # (3,3) m²
+    method: str  # "structure" | "water-plane"
+    anchor_ids: np.ndarray  # structure point ids under the click (empty for water-plane)
+    anchor_mean: np.ndarray | None  # their mean position
+
+
+def camera_view(state: Any, camera: CameraCalibration) -> CameraView:
+    """The camera pose of a fused state at its time, with its covariance (from the fused
+    position and attitude covariance, None when the state has none)."""
+    pose = camera_pose(state, camera)
+    cov = None
+    p_cov, a_cov = getattr(state, "position_cov", None), getattr(state, "attitude_cov", None)
+    if p_cov is not None and a_cov is not None:
+        lever = np.asarray(state.C_body_to_level, dtype=float) @ np.asarray(
+            camera.lever_arm_body, dtype=float)
+        cov = camera_pose_covariance(p_cov, a_cov, lever)
+        if not np.isfinite(cov).all():
+            cov = None
+    return CameraView(float(state.time), pose.C_level_to_camera, pose.position_ned, cov)
+
+
+def designate(projector: Projector, view: CameraView, u: float, v: float,
+              structure: Structure, water_down_m: float | None) -> Designation:
+    """The 3-D point for pixel (u, v) of the frame seen from ``view``: the structure points
+    near its ray, else the water plane at ``water_down_m`` (None: unknown, no fallback)."""
+    pose = CameraPose(view.C_level_to_camera, view.position_ned)
+    ray = projector.pixel_ray(pose, u, v)
+    focal = projector.camera.focal_px
+    if len(structure.points):
+        _visible, uv = projector.project_points(pose, structure.points)
+        found = structure_point_at(structure.points, structure.sigma, uv, np.array([u, v]),
+                                   pose.position_ned, ray, focal)
+        if found is not None:
+            point, cov, near = found
+            return Designation(point, cov, "structure", np.asarray(structure.ids)[near],
+                               structure.points[near].mean(axis=0))
+    hit = None if water_down_m is None else \
+        water_plane_point(pose.position_ned, ray, water_down_m)
+    if hit is None:
+        raise DesignationError(
+            f"pixel ({u:g}, {v:g}) has no port-structure point within "
+            f"{2 * DESIGNATION_RADIUS_PX:g} px and its ray does not meet the water plane "
+            "(above the horizon, or the water level is unknown)")
+    _, cov = point_on_ray(hit[None], None, pose.position_ned, ray, focal)
+    return Designation(hit, cov, "water-plane", np.zeros(0, np.int64), None)
+
+
+def target_window(image_width: int) -> int:
+    """Template side (px, odd) of the image tracker for an image this wide."""
+    return max(15, int(round(TARGET_WINDOW_PX * image_width / 960.0)) | 1)
+
+
+class FollowedTarget:
+    """A designated target followed through the frames (module docstring)."""
+
+    def __init__(self, projector: Projector, designation: Designation, image: np.ndarray,
+                 uv: tuple[float, float], view: CameraView, index: int,
+                 earlier_frames: list[tuple[float, np.ndarray]], views: SolvedViews | None
+                 ) -> None:
+        self.projector = projector
+        self.designation = designation
+        # Seeded by the clicked frame: the same click gives the same track, in the server
+        # and in the evaluation.
+        self.tracker = DesignatedTarget(
+            projector.camera, image, np.asarray(uv, float), designation.position_ned,
+            designation.covariance, view, params=TargetParams(window=target_window(
+                projector.width)), seed=index, refine=designation.method == "structure",
+            earlier_frames=earlier_frames, views=views)
+        self.frame_index = index  # last frame followed
+        self.refreshed_t = -math.inf  # structure time of the last refresh
+
+    @property
+    def position_ned(self) -> np.ndarray:
+        return self.tracker.position_ned
+
+    def follow(self, index: int, image: np.ndarray, view: CameraView,
+               structure: Structure) -> TargetState:
+        """One frame: tracked on from the last one (or, after a gap or a seek, taken back
+        where its 3-D point projects), then refreshed on the structure when it is due."""
+        if index == self.frame_index + 1:
+            state = self.tracker.update(image, view)
+        else:
+            state = self.tracker.resume(image, view)
+        self.frame_index = index
+        self._refresh(view, structure)
+        return state
+
+    def _refresh(self, view: CameraView, structure: Structure) -> None:
+        t = structure.t
+        if t is None or 0.0 <= t - self.refreshed_t < TARGET_REFRESH_S:
+            return  # (a structure older than the last one: the replay went back, go on)
+        self.refreshed_t = t
+        pose = CameraPose(view.C_level_to_camera, view.position_ned)
+        _visible, uv = self.projector.project_points(pose, structure.points)
+        self.tracker.refresh(structure.points, structure.sigma, uv, view, structure.views)

@@ -1,0 +1,300 @@
+"""The CPP block inside the fusion, once the INS runs (thesis 5.1.1, fig. 18, and 5.2.1;
+``METHOD.md``): per GNSS epoch the time-differenced carrier phase (η rows, or the loose
+per-receiver velocities ``v``) and the single differences ζ with their integers, applied to the
+EKF; the standalone position only anchors the absolute output and aids the EKF when nothing
+else does.
+
+The single-difference integers are kept per (receiver, satellite) with an arbitrary offset per
+satellite (N_ij = A_i − A_j); the integer part of the inter-receiver delays is absorbed in the
+same way as in the compass. New or slipped satellites are re-resolved by rounding against the
+EKF's prediction when its σ is far below a cycle. The TDCP is corrected for the modelled
+change of the tropospheric and ionospheric delays over the interval (mm/s for a low satellite,
+a few cm per minute of trajectory otherwise).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from .cpp import (
+    SAME_CARRIER_SYSTEMS,
+    EpochGeometry,
+    EtaRow,
+    detect_cycle_slips,
+    elevation_sigma,
+    eta_observations,
+    loose_velocity,
+)
+from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput
+from .ephemeris import klobuchar_delay, troposphere_delay
+from .frames import WAVELENGTH_L1, ecef_to_ned, ned_to_ecef
+from .gnss_epochs import N_RECEIVERS, GnssFront
+from .options import FusionOptions, WorldOrigin
+from .records import GnssEpoch, NavigationData
+
+GNSS_STALE_S = 3.0  # no carrier-phase velocity for this long: "degraded"
+SPP_AIDING_AFTER_S = 5.0  # ... and for this long: the SPP position aids the EKF (loosely)
+SPP_SIGMA_M = (5.0, 5.0, 8.0)  # 1-σ NED of the standalone position when it aids the EKF
+ROUNDING_SIGMA_CYCLES = 0.12  # predicted single difference must be this sure to round N
+ROUNDING_FRACTION = 0.3  # ... and the measured fraction this close to an integer
+DELAY_SEED_ATTITUDE = math.radians(8.0)  # attitude σ below which the delays' fractions are found
+DELAY_SEED_COHERENCE = 0.8  # |mean phasor| of the fractions below this: they disagree
+
+
+class SdIntegers:
+    """Integers of the single differences, A[(receiver, sat)] with N_ij = A_i − A_j."""
+
+    def __init__(self) -> None:
+        self.A: dict[tuple[int, str], int] = {}
+        self._strikes: dict[tuple[int, str], int] = {}
+
+    def __len__(self) -> int:
+        return len(self.A)
+
+    def drop(self, keys: Iterable[tuple[int, str]]) -> None:
+        for key in keys:
+            self.A.pop(key, None)
+            self._strikes.pop(key, None)
+
+    def rows(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry, C_el: np.ndarray,
+             ekf: ErrorStateEkf, phase_sigma: float, resolve: bool = True) -> list[SdRow]:
+        """Rows of the satellites with known integers; new ones are rounded first."""
+        out: list[SdRow] = []
+        for sat, g in geo.satellites.items():
+            if sat[0] not in SAME_CARRIER_SYSTEMS:
+                continue
+            lam = geo.wavelengths[sat]
+            phase = {i: e.satellites[sat].carrier_phase for i, e in enumerate(epochs)
+                     if e is not None and sat in e.satellites
+                     and math.isfinite(e.satellites[sat].carrier_phase)}
+            if len(phase) < 2:
+                continue
+            for i in list(self.A):
+                if i[1] == sat and i[0] not in phase:
+                    self.drop([i])
+            e = C_el @ g.line_of_sight
+            sigma = elevation_sigma(phase_sigma, g.elevation)
+            if resolve:
+                self._resolve(sat, phase, lam, e, sigma, ekf)
+            known = sorted(i for i in phase if (i, sat) in self.A)
+            if len(known) < 2:
+                continue
+            ref = known[0]
+            for j in known[1:]:
+                n_ij = self.A[(ref, sat)] - self.A[(j, sat)]
+                out.append(SdRow(sat=sat, ref=ref, other=j, los_ned=e,
+                                 value_m=lam * (phase[ref] - phase[j] - n_ij), sigma_m=sigma))
+        return out
+
+    def _resolve(self, sat: str, phase: dict[int, float], lam: float, e: np.ndarray,
+                 sigma: float, ekf: ErrorStateEkf) -> None:
+        known = sorted(i for i in phase if (i, sat) in self.A)
+        unknown = [i for i in sorted(phase) if (i, sat) not in self.A]
+        if not unknown:
+            return
+        if not known:
+            ref = unknown.pop(0)
+            candidate = {ref: 0}
+        else:
+            ref = known[0]
+            candidate = {}
+        for j in unknown:
+            pred, s = ekf.predict_single_difference(ref, j, e, sigma)
+            n = (lam * (phase[ref] - phase[j]) - pred) / lam
+            N = round(n)
+            if s < ROUNDING_SIGMA_CYCLES * lam and abs(n - N) < ROUNDING_FRACTION:
+                base = candidate.get(ref, self.A.get((ref, sat), 0))
+                candidate[j] = base - int(N)
+        if len(candidate) >= 2 or known:
+            for i, a in candidate.items():
+                self.A[(i, sat)] = a
+
+    def strike(self, rows: Sequence[SdRow], rejected: Sequence[int]) -> None:
+        """A row failing the gate twice running loses the integer of its non-reference
+        receiver; when every row of a satellite fails, the reference is the suspect and the
+        satellite starts again."""
+        bad = set(rejected)
+        for k, r in enumerate(rows):
+            if k not in bad:
+                self._strikes.pop((r.other, r.sat), None)
+        by_sat: dict[str, list[SdRow]] = {}
+        for k in bad:
+            by_sat.setdefault(rows[k].sat, []).append(rows[k])
+        for sat, failed in by_sat.items():
+            whole = len(failed) >= 2 and len(failed) == sum(1 for r in rows if r.sat == sat)
+            for r in failed:
+                key = (r.other, r.sat)
+                self._strikes[key] = self._strikes.get(key, 0) + 1
+                if self._strikes[key] >= 2:
+                    self.drop([k for k in list(self.A) if k[1] == sat] if whole else [key])
+
+
+class CarrierPhaseCoupling:
+    """One GNSS epoch into the running EKF: η (or v), ζ, the delays, the SPP aiding."""
+
+    def __init__(self, nav: NavigationData, options: FusionOptions, config: EkfConfig,
+                 aligning: bool) -> None:
+        self.nav = nav
+        self.options = options
+        self.cfg = config
+        self.integers = SdIntegers()
+        self.delays_known = False
+        self.last_velocity_time = -math.inf
+        self.n_sats = 0  # satellites that served the last velocity update
+        self.n_sd_sats = 0  # ... and the last single-difference update
+        # Started from tilt + course (no compass fix): until the single differences agree.
+        self.aligning = aligning
+        self.message = ""
+
+    def update(self, t: float, epochs: list[GnssEpoch | None], ekf: ErrorStateEkf,
+               origin: WorldOrigin, front: GnssFront) -> None:
+        opt, cfg = self.options, self.cfg
+        front.standalone(epochs, joint=False)
+        geo = front.geometry(t, epochs, ned_to_ecef(ekf.antenna_position(None), origin.llh))
+        slips = detect_cycle_slips(front.prev, epochs, common_clock=opt.common_clock)
+        prev_ok = front.prev_geo is not None and ekf.clone_time is not None \
+            and abs(front.prev_geo.time - ekf.clone_time) < 1e-3
+        rows: list[EtaRow] = []
+        if prev_ok and opt.use_cpp:
+            rows = eta_observations(front.prev, epochs, front.prev_geo, geo, slips=slips,
+                                    phase_sigma_m=cfg.phase_sigma_m,
+                                    common_clock=opt.common_clock).rows
+            rows = self._atmosphere_corrected(rows, front.prev_geo, geo, origin)
+        # Single differences: integers re-resolved after slips, rows for the attitude.
+        self.integers.drop([key for key in slips if key in self.integers.A])
+        sd_rows: list[SdRow] = []
+        if opt.use_cpp:
+            if not self.delays_known:
+                self._seed_delays(epochs, geo, ekf, origin)
+            sd_rows = self.integers.rows(epochs, geo, origin.C_ecef_to_level, ekf,
+                                         cfg.phase_sigma_m, resolve=self.delays_known)
+        self.n_sats = len(self._apply(rows, sd_rows, ekf, origin))
+        if front.spp_ecef is not None:
+            self._spp_aiding(front.spp_ecef, ekf, origin)
+        ekf.clone(t)
+        front.advance(epochs, geo)
+        self.message = (f"{self.n_sats} sats in the velocity, {self.n_sd_sats} in the single "
+                        f"differences; gate rejections {_gate_text(ekf)}")
+
+    def _atmosphere_corrected(self, rows: Sequence[EtaRow], prev: EpochGeometry,
+                              geo: EpochGeometry, origin: WorldOrigin) -> list[EtaRow]:
+        """Remove the modelled change of the tropospheric and ionospheric delays over the
+        interval from the TDCP (mm/s for a low satellite: the delays grow as it sets)."""
+        lat, lon, h = origin.llh
+        nav = self.nav
+        cache: dict[str, float] = {}
+        out = []
+        for r in rows:
+            if r.sat not in cache:
+                a, b = prev.satellites[r.sat], geo.satellites[r.sat]
+                d_tropo = troposphere_delay(b.elevation, h) - troposphere_delay(a.elevation, h)
+                d_iono = 0.0
+                if nav.iono_alpha is not None and nav.iono_beta is not None:
+                    scale = (geo.wavelengths[r.sat] / WAVELENGTH_L1) ** 2
+                    d_iono = scale * (
+                        klobuchar_delay(nav.iono_alpha, nav.iono_beta, geo.time, lat, lon,
+                                        b.elevation, b.azimuth)
+                        - klobuchar_delay(nav.iono_alpha, nav.iono_beta, prev.time, lat, lon,
+                                          a.elevation, a.azimuth))
+                cache[r.sat] = (d_tropo - d_iono) / r.interval  # phase: +T, −I
+            out.append(replace(r, measured=r.measured - cache[r.sat]))
+        return out
+
+    def _apply(self, rows: Sequence[EtaRow], sd_rows: Sequence[SdRow], ekf: ErrorStateEkf,
+               origin: WorldOrigin) -> set[str]:
+        """η (or the loose per-receiver velocities) and ζ of one epoch; returns the satellites
+        that served the velocity."""
+        C_el = origin.C_ecef_to_level
+        used: set[str] = set()
+        eta: list[EtaInput] = []
+        if self.options.tightly_coupled:
+            eta = [EtaInput(antenna=r.antenna, sat=r.sat, u_ned=C_el @ r.los_ecef,
+                            measured=r.measured, sigma=r.sigma, interval=r.interval)
+                   for r in rows]
+        else:
+            vels = []
+            for i in range(N_RECEIVERS):
+                lv = loose_velocity([r for r in rows if r.antenna == i], C_el)
+                if lv is not None:
+                    vels.append(VelocityInput(antenna=i, velocity_ned=lv.velocity_ned,
+                                              covariance=lv.covariance_ned,
+                                              interval=lv.interval_s))
+                    used |= set(lv.satellites)
+            res = ekf.update_velocity(vels)
+            if res.accepted:
+                self.last_velocity_time = ekf.time
+            else:
+                used = set()
+        res_eta, res_sd = ekf.update_carrier_phase(eta, sd_rows)
+        if eta:
+            bad = set(res_eta.rejected)
+            used = {r.sat for k, r in enumerate(rows) if k not in bad}
+            if res_eta.accepted:
+                self.last_velocity_time = ekf.time
+        bad_sd = set(res_sd.rejected)
+        self.n_sd_sats = len({r.sat for k, r in enumerate(sd_rows) if k not in bad_sd})
+        if sd_rows:
+            self.integers.strike(sd_rows, res_sd.rejected)
+            if res_sd.accepted:
+                self.aligning = False
+        return used
+
+    def _seed_delays(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry,
+                     ekf: ErrorStateEkf, origin: WorldOrigin) -> None:
+        """D̂_1j from the fractional parts of λΦ_1j − e·Ĉb_1j over all satellites (common
+        clock: the same for every satellite), given the compass/INS attitude."""
+        if max(np.linalg.eigvalsh(ekf.covariance(ekf.ix.E))) > DELAY_SEED_ATTITUDE ** 2:
+            return  # a fraction needs the baselines to ~1 cm
+        C = ekf.nominal.C_body_to_level
+        delays = np.zeros(3)
+        lam = 0.0
+        for j in (1, 2, 3):
+            phasors = []
+            for sat, g in geo.satellites.items():
+                if sat[0] not in SAME_CARRIER_SYSTEMS:
+                    continue
+                e0, ej = epochs[0], epochs[j]
+                if e0 is None or ej is None or sat not in e0.satellites \
+                        or sat not in ej.satellites:
+                    continue
+                sd = e0.satellites[sat].carrier_phase - ej.satellites[sat].carrier_phase
+                if not math.isfinite(sd):
+                    continue
+                lam = geo.wavelengths[sat]
+                e = origin.C_ecef_to_level @ g.line_of_sight
+                b = C @ (ekf.lever_antennas[j] - ekf.lever_antennas[0])
+                phasors.append(np.exp(2j * math.pi * (sd - e @ b / lam)))
+            if len(phasors) < 3:
+                return
+            mean = np.mean(phasors)
+            if abs(mean) < DELAY_SEED_COHERENCE:
+                return  # the fractions disagree: the attitude is not good enough
+            delays[j - 1] = lam * np.angle(mean) / (2 * math.pi)  # L1 only: one wavelength
+        ekf.reset_delays(delays, self.cfg.init_delay)
+        self.delays_known = True
+
+    def _spp_aiding(self, spp_ecef: np.ndarray, ekf: ErrorStateEkf,
+                    origin: WorldOrigin) -> None:
+        """SPP: refine the absolute origin (llh output); aid the EKF when nothing else does."""
+        spp_ned = ecef_to_ned(spp_ecef, origin.llh)
+        if ekf.time - self.last_velocity_time <= GNSS_STALE_S:
+            # Only while the trajectory is carrier-phase driven: not an INS drift estimate.
+            offset = spp_ned - ekf.antenna_position(None)
+            origin.offset_weight += 1.0
+            origin.offset_ned += (offset - origin.offset_ned) / origin.offset_weight
+        elif ekf.time - self.last_velocity_time > SPP_AIDING_AFTER_S:
+            R = np.diag(np.square(SPP_SIGMA_M))
+            ekf.update_position(spp_ned - origin.offset_ned, R)
+
+    def carrier_fresh(self, t: float) -> bool:
+        """Carrier-phase velocity accepted within the last ``GNSS_STALE_S``."""
+        return t - self.last_velocity_time <= GNSS_STALE_S
+
+
+def _gate_text(ekf: ErrorStateEkf) -> str:
+    return ", ".join(f"{k} {v.rejected}/{v.accepted + v.rejected}"
+                     for k, v in ekf.stats.items())

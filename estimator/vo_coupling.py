@@ -1,0 +1,211 @@
+"""The VO inside the fusion and the port structure (thesis 5.1.1, figs. 16–17; the
+EKF's output, ``METHOD.md``).
+
+Each VO world (``VoOutput.segment``) is mapped into L once the camera has moved a little since
+its first tracked frame (the first scale is the INS displacement over the VO one); from then on
+every tracked frame updates the EKF (Θ, d) and the map points are carried into L with the
+current scale and drift estimates (``structure``). A lost segment's points are frozen in L.
+Every tracked frame also feeds the landmark EKFs (``estimator.landmarks``, seed 000): each map
+point seen is one EKF in L, seeded from its mapped VO point and updated with its pixel and the
+fused camera pose and covariance; ``structure`` gives the refined point once it is reportable
+(``structure(refined=False)``: the raw points).
+"""
+
+from __future__ import annotations
+
+import time as _time
+from collections.abc import Callable
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from .ekf import ErrorStateEkf
+from .landmarks import LandmarkMap, LandmarkParams, SolvedViews, camera_pose_covariance
+from .records import CameraCalibration
+from .vo import VoOutput
+
+VO_START_BASELINE = 0.3  # VO units moved since the anchor frame before a segment is mapped
+VO_START_METRES = 0.3  # ... and metres (a sensible first scale from the INS)
+VO_START_SCALE_SIGMA = 0.3  # relative σ of that first scale
+
+
+class VoCoupling:
+    """VO segments mapped into L, their EKF updates, and the port structure."""
+
+    def __init__(self, camera: CameraCalibration, landmarks: LandmarkParams | None,
+                 water_down_m: float | None) -> None:
+        self.status = "initialising"  # the VO's last status
+        self._anchor: tuple[int, np.ndarray, np.ndarray] | None = None  # segment, p_W, r_cam
+        self._points: dict[int, tuple[int, np.ndarray]] = {}  # id → (segment, X_W)
+        self.frozen: dict[int, np.ndarray] = {}  # id → L point of ended segments
+        self.frozen_sigma: dict[int, float] = {}
+        self.landmarks: LandmarkMap | None = None
+        if landmarks is not None:
+            if water_down_m is not None and landmarks.water_down_m is None:
+                landmarks = replace(landmarks, water_down_m=float(water_down_m))
+            self.landmarks = LandmarkMap(camera.focal_px, landmarks)
+        self._K = np.asarray(camera.K, float)
+        self._dist = np.asarray(camera.distortion, float).ravel()
+
+    # ---------------------------------------------------------------------------- input
+
+    def update(self, out: VoOutput, ekf: ErrorStateEkf,
+               timed: Callable[[str, float], None]) -> None:
+        """One VO output at its time (the INS is there): map a new segment, or update the
+        EKF with Θ and d and the landmarks with the views."""
+        if out.status != "tracking" or out.C_world_to_camera is None \
+                or out.camera_position_world is None:
+            if out.status == "lost":
+                self.freeze_segment(ekf)
+                self._anchor = None
+            return
+        for pid, X in zip(out.point_ids, out.points_world, strict=True):
+            self._points[int(pid)] = (out.segment, np.asarray(X, float))
+        p = np.asarray(out.camera_position_world, float)
+        if ekf.vo is None or ekf.vo.segment != out.segment:
+            self._start_segment(out, p, ekf)
+            return
+        ekf.update_vo(out.C_world_to_camera, p)
+        if self.landmarks is not None:
+            t0 = _time.perf_counter()
+            self._refine_landmarks(out, ekf)
+            timed("landmarks", _time.perf_counter() - t0)
+
+    def _start_segment(self, out: VoOutput, p: np.ndarray, ekf: ErrorStateEkf) -> None:
+        """A new VO world: anchored at its first tracked frame, mapped into L once the camera
+        has moved enough for a first scale."""
+        if ekf.vo is not None:
+            self.freeze_segment(ekf)
+        anchor = self._anchor
+        if anchor is None or anchor[0] != out.segment:
+            self._anchor = (out.segment, p, ekf.camera_position())
+            return
+        dp = np.linalg.norm(p - anchor[1])
+        dr = np.linalg.norm(ekf.camera_position() - anchor[2])
+        if dp < VO_START_BASELINE or dr < VO_START_METRES:
+            return
+        scale = dr / dp
+        ekf.start_vo_segment(out.segment, out.C_world_to_camera, p, scale,
+                             VO_START_SCALE_SIGMA * scale)
+        self._anchor = None
+
+    def _refine_landmarks(self, out: VoOutput, ekf: ErrorStateEkf) -> None:
+        """One view of the landmark EKFs (``estimator.landmarks``): the map points seen in this
+        frame (new ones seeded from the VO point mapped into L) with the fused camera pose and
+        its covariance at the frame time."""
+        lm = self.landmarks
+        assert ekf.vo is not None and lm is not None
+        ids, uv = out.observations
+        ids = np.asarray(ids, np.int64)
+        if len(ids) == 0:
+            return
+        ekf.flush()
+        ix, P = ekf.ix, ekf.P
+        C_bl = ekf.nominal.C_body_to_level
+        C_lc = (C_bl @ ekf.C_camera_to_body).T
+        p_cam = ekf.camera_position()
+        pose_cov = camera_pose_covariance(P[ix.R, ix.R], P[ix.E, ix.E], C_bl @ ekf.lever_camera,
+                                          P[ix.R, ix.E])
+        new = np.flatnonzero(~lm.known(ids))
+        if len(new):
+            # out.point_ids is sorted (the VO's map is kept sorted by id).
+            pid = np.asarray(out.point_ids, np.int64)
+            pos = np.clip(np.searchsorted(pid, ids[new]), 0, max(len(pid) - 1, 0))
+            have = (pos < len(pid)) & (pid[pos] == ids[new]) if len(pid) else \
+                np.zeros(len(new), bool)
+            if have.any():
+                Xw = np.asarray(out.points_world, float)[pos[have]]
+                lm.seed_from_view(ids[new[have]], ekf.vo_to_level(Xw), p_cam,
+                                  ekf.vo_point_sigma(Xw), time=out.time)
+        pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        xy = cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
+        lm.update(out.time, C_lc, p_cam, pose_cov, ids, xy)
+
+    def freeze_segment(self, ekf: ErrorStateEkf | None) -> None:
+        """Keep the points of an ended VO segment in L as they were last mapped."""
+        if ekf is None or ekf.vo is None:
+            return
+        seg = ekf.vo.segment
+        cur = [(pid, X) for pid, (s, X) in self._points.items() if s == seg]
+        if cur:
+            X = np.array([c[1] for c in cur])
+            for (pid, _), q, s in zip(cur, ekf.vo_to_level(X), ekf.vo_point_sigma(X),
+                                      strict=True):
+                self.frozen[pid] = q
+                self.frozen_sigma[pid] = float(s)
+        self._points = {k: v for k, v in self._points.items() if v[0] != seg}
+        ekf.vo = None
+
+    # --------------------------------------------------------------------------- output
+
+    def solved_views(self) -> SolvedViews | None:
+        """The landmark window's views with their solved attitudes (``SolvedViews``); None
+        without the joint refinement."""
+        lm = self.landmarks
+        return None if lm is None or lm.window is None else lm.window.solved()
+
+    def _mapped(self, ekf: ErrorStateEkf | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(points in L, σ, ids) of the frozen segments and the current one (raw VO)."""
+        ids, pts, sig = [], [], []
+        for pid, p in self.frozen.items():
+            ids.append(pid)
+            pts.append(p)
+            sig.append(self.frozen_sigma[pid])
+        if ekf is not None and ekf.vo is not None:
+            seg = ekf.vo.segment
+            cur = [(pid, X) for pid, (s, X) in self._points.items() if s == seg]
+            if cur:
+                X = np.array([c[1] for c in cur])
+                pts.extend(ekf.vo_to_level(X))
+                sig.extend(ekf.vo_point_sigma(X))
+                ids.extend(c[0] for c in cur)
+        if not ids:
+            return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
+        return np.array(pts), np.array(sig), np.array(ids, np.int64)
+
+    def structure(self, ekf: ErrorStateEkf | None, refined: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Port-structure points in L, their 1-σ (m), ids (``Fusion.structure``)."""
+        pts_a, sig_a, ids_a = self._mapped(ekf)
+        if not refined or self.landmarks is None or not len(ids_a):
+            return pts_a, sig_a, ids_a
+        lm = self.landmarks
+        rows, ok, rejected = lm.classify(ids_a)
+        have = rows >= 0
+        x_lm, P_lm = lm.best(rows[have])
+        sig_lm = np.sqrt(np.trace(P_lm, axis1=1, axis2=2) / 3.0)
+        pts_a[ok] = x_lm[ok[have]]
+        # Reportable: the landmark's σ; still converging: the larger of the two.
+        sig_a[have] = np.where(ok[have], sig_lm, np.maximum(sig_a[have], sig_lm))
+        # A point whose σ exceeds its range (from the camera that last saw it, else the
+        # current one) says nothing of where it is (a far VO point re-triangulated near, a
+        # reflection): left out.
+        seen_from = lm.last_camera[rows[have]]
+        unseen = ~np.isfinite(seen_from).all(axis=1)
+        if ekf is not None:
+            seen_from[unseen] = ekf.camera_position()
+        vague = np.zeros(len(ids_a), bool)
+        with np.errstate(invalid="ignore"):  # no camera at all: NaN, kept
+            vague[have] = sig_a[have] > np.linalg.norm(pts_a[have] - seen_from, axis=1)
+        keep = ~rejected & ~vague
+        return pts_a[keep], sig_a[keep], ids_a[keep]
+
+    def converged_ids(self, ids: np.ndarray) -> np.ndarray:
+        """Those of ``ids`` whose landmark is reportable (converged), in their order."""
+        ids = np.asarray(ids, np.int64)
+        if self.landmarks is None:
+            return ids[:0]
+        return ids[self.landmarks.classify(ids)[1]]
+
+    def landmark_views(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, accepted views; 0 for a dropped one) of every landmark seeded so far."""
+        lm = self.landmarks
+        if lm is None:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return lm.ids.copy(), np.where(lm.alive, lm.views, 0)
+
+    def landmark_positions(self, ids: np.ndarray) -> np.ndarray:
+        """Reported positions (the joint window's where it has one) of landmarks ``ids``."""
+        assert self.landmarks is not None
+        return self.landmarks.best(self.landmarks.lookup(ids))[0]

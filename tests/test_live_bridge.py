@@ -1,0 +1,168 @@
+"""Bridge outputs (live.nmea, live.bridge) read back from real loopback sockets.
+
+Sentences are parsed by pynmeagps' NMEAReader (it checks each sentence's checksum); the
+IEC 61162-450 framing (header, tag blocks, their checksums) is checked here by hand against
+the standard's format, independently of the sender's code.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import socket
+import time
+from datetime import datetime
+
+import pytest
+from pynmeagps import NMEAReader
+
+from estimator.frames import gpst_from_datetime
+from live.bridge import IEC450_HEADER, Iec450Sender, NmeaOutput, NmeaTcpServer
+from live.nmea import Alert, BridgeState, SentenceMaker
+
+T = gpst_from_datetime(datetime(2026, 3, 4, 5, 6, 25, 250000))  # 05:06:07.25 UTC (18 s)
+STATE = BridgeState(time=T, llh_deg=(34.720512, 135.333123, 41.25),
+                    velocity_ned=(1.0, -1.0, 0.0),
+                    euler=(0.01, -0.02, math.radians(301.237)),
+                    rate_of_turn=math.radians(-0.5), mode="rtk-fixed", satellites=14,
+                    hdop=0.8)
+TAG_RE = re.compile(rb"\\(s:([A-Z]{2}\d{4}),n:(\d{1,3}))\*([0-9A-F]{2})\\")
+
+
+def parse_datagram(data: bytes) -> list[tuple[str, int, object]]:
+    """(source id, line count, parsed sentence) of an IEC 61162-450 sentence datagram."""
+    assert data[:6] == b"UdPbC\x00"
+    out = []
+    rest = data[6:]
+    while rest:
+        m = TAG_RE.match(rest)
+        assert m, rest[:40]
+        body, cks = m.group(1), m.group(4)
+        x = 0
+        for b in body:
+            x ^= b
+        assert f"{x:02X}".encode() == cks
+        rest = rest[m.end():]
+        end = rest.index(b"\r\n") + 2
+        out.append((m.group(2).decode(), int(m.group(3)), NMEAReader.parse(rest[:end])))
+        rest = rest[end:]
+    return out
+
+
+@pytest.fixture
+def udp_receiver():
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(2.0)
+    yield sock
+    sock.close()
+
+
+def test_sentences_over_iec450_udp(udp_receiver):
+    sender = Iec450Sender(udp_receiver.getsockname(), source_id="HE0007")
+    out = NmeaOutput([sender], SentenceMaker(leap_seconds=18))
+    sent = out.update(STATE)
+    assert len(sent) == 6
+    data, _ = udp_receiver.recvfrom(2000)
+    items = parse_datagram(data)
+    assert [i[0] for i in items] == ["HE0007"] * 6
+    assert [i[1] for i in items] == [1, 2, 3, 4, 5, 6]
+    msgs = {m.msgID: m for _, _, m in items}
+    assert msgs["HDT"].talker == "HE" and msgs["HDT"].headingT == pytest.approx(301.24)
+    assert msgs["THS"].headt == pytest.approx(301.24) and msgs["THS"].mi == "A"
+    assert msgs["ROT"].rot == pytest.approx(-30.0) and msgs["ROT"].valid == "A"  # deg/min
+    vtg = msgs["VTG"]
+    assert vtg.cogt == pytest.approx(315.0) and vtg.posMode == "A"
+    assert vtg.sogn == pytest.approx(math.sqrt(2) * 3600 / 1852, abs=0.01)
+    assert vtg.sogk == pytest.approx(math.sqrt(2) * 3.6, abs=0.01)
+    gga = msgs["GGA"]
+    assert gga.lat == pytest.approx(34.720512, abs=1e-7)
+    assert gga.lon == pytest.approx(135.333123, abs=1e-7)
+    assert gga.quality == 4 and gga.numSV == 14 and gga.alt + gga.sep == pytest.approx(41.25)
+    assert gga.time.isoformat() == "05:06:07.250000"
+    zda = msgs["ZDA"]
+    assert (zda.year, zda.month, zda.day) == (2026, 3, 4)
+    assert zda.time.isoformat() == "05:06:07.250000"
+
+    # the 10 Hz group is next due at the .30 s slot, the 1 Hz ones at 06:08; line counts go on
+    sent = out.update(BridgeState(**{**STATE.__dict__, "time": T + 0.03}))
+    assert sent == []
+    sent = out.update(BridgeState(**{**STATE.__dict__, "time": T + 0.05, "mode": "invalid"}))
+    assert [NMEAReader.parse(s).msgID for s in sent] == ["HDT", "THS", "ROT"]
+    items = parse_datagram(udp_receiver.recvfrom(2000)[0])
+    assert [i[1] for i in items] == [7, 8, 9]
+    hdt, ths, rot = (m for _, _, m in items)
+    assert hdt.headingT == "" and ths.mi == "V" and rot.valid == "V"
+    sender.close()
+
+
+def test_alerts_over_udp_and_tcp(udp_receiver):
+    server = NmeaTcpServer("127.0.0.1", 0)
+    client = socket.create_connection(server.address, timeout=2.0)
+    deadline = time.monotonic() + 2
+    while server.client_count < 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    sender = Iec450Sender(udp_receiver.getsockname())
+    out = NmeaOutput([sender, server])
+    alert = Alert(alert_id=12, text="Close to berth: 2.1 m", priority="warning",
+                  changed=T)
+    assert len(out.alerts([alert])) == 2
+    assert out.alerts([alert]) == []  # unchanged: not repeated
+    out.alerts([Alert(**{**alert.__dict__, "acknowledged": True})])
+    items = parse_datagram(udp_receiver.recvfrom(2000)[0])
+    alr, alf = (m for _, _, m in items)
+    assert alr.alarmnum == "012" and alr.alarmcond == "A" and alr.alarmstate == "V"
+    assert alr.alarmtext == "CLOSE TO BERTH: 2.1 M"
+    assert alf.alertpriority == "W" and alf.alertstate == "V" and alf.alertid == "012"
+    assert len(alf.alerttxt) <= 16
+    # the TCP client gets the same sentences, plain
+    buf = b""
+    while buf.count(b"\r\n") < 4:
+        buf += client.recv(4096)
+    lines = [NMEAReader.parse(line + b"\r\n") for line in buf.split(b"\r\n") if line]
+    assert [m.msgID for m in lines] == ["ALR", "ALF", "ALR", "ALF"]
+    assert lines[2].alarmstate == "A" and lines[3].alertstate == "A"
+    client.close()
+    server.close()
+    sender.close()
+
+
+def test_datagrams_split_at_1472_bytes(udp_receiver):
+    sender = Iec450Sender(udp_receiver.getsockname())
+    maker = SentenceMaker()
+    sentences = [maker.position(STATE)] * 40
+    sender.send(sentences)
+    got = []
+    while len(got) < 40:
+        data = udp_receiver.recvfrom(4000)[0]
+        assert len(data) <= 1472
+        got += parse_datagram(data)
+    assert [n for _, n, _ in got] == list(range(1, 41))
+    assert IEC450_HEADER == b"UdPbC\x00"
+    sender.close()
+
+
+def test_multicast_on_loopback():
+    group, port = "239.192.0.4", 0
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    rx.bind(("", port))
+    port = rx.getsockname()[1]
+    try:
+        rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                      socket.inet_aton(group) + socket.inet_aton("127.0.0.1"))
+    except OSError as exc:
+        rx.close()
+        pytest.skip(f"no multicast on loopback here: {exc}")
+    rx.settimeout(2.0)
+    sender = Iec450Sender((group, port), interface="127.0.0.1")
+    sender.send([SentenceMaker().time(T)])
+    try:
+        data = rx.recvfrom(2000)[0]
+    except TimeoutError:
+        pytest.skip("multicast loopback not delivered in this environment")
+    finally:
+        rx.close()
+        sender.close()
+    (_, n, zda), = parse_datagram(data)
+    assert n == 1 and zda.msgID == "ZDA"
