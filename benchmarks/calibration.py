@@ -93,27 +93,44 @@ def horizontal_drift(times: np.ndarray, velocity_ned: np.ndarray, window_s: floa
     return np.linalg.norm(path[end + 1] - path[start], axis=1)[whole]
 
 
-def static_figures(receivers: Sequence[Sequence[GnssEpoch]], nav: NavigationData,
-                   windows_s: Sequence[int] = WINDOWS_S) -> StaticFigures:
-    """Figures of static receivers, each alone, their epochs and windows pooled."""
-    velocities, drifts = [], {w: [] for w in windows_s}
-    for epochs in receivers:
-        t, v = receiver_velocity(epochs, nav)
-        velocities.append(v)
-        for w in windows_s:
-            drifts[w].append(horizontal_drift(t, v, w))
-    v = np.vstack(velocities)
+Series = list[tuple[np.ndarray, np.ndarray]]  # (times, NED velocities) of each receiver
+
+
+def velocity_series(receivers: Sequence[Sequence[GnssEpoch]], nav: NavigationData) -> Series:
+    """The TDCP velocity of each receiver, alone."""
+    return [receiver_velocity(epochs, nav) for epochs in receivers]
+
+
+def figures(series: Series, windows_s: Sequence[int] = WINDOWS_S) -> StaticFigures:
+    """Figures of static receivers' velocity series, epochs and windows of all pooled."""
+    v = np.vstack([v for _, v in series])
     if len(v) == 0:
         raise ValueError("no TDCP velocity could be computed")
     drift = {}
     for w in windows_s:
-        d = np.concatenate(drifts[w])
+        d = np.concatenate([horizontal_drift(t, vel, w) for t, vel in series])
         drift[w] = ((float(np.median(d)), float(np.percentile(d, 95)), float(d.max()))
                     if len(d) else (np.nan, np.nan, np.nan))
     return StaticFigures(
-        receivers=len(receivers), epochs=len(v),
+        receivers=len(series), epochs=len(v),
         horizontal_rms_mps=float(np.sqrt(np.mean(np.sum(v[:, :2] ** 2, axis=1)))),
         vertical_rms_mps=float(np.sqrt(np.mean(v[:, 2] ** 2))), drift_m=drift)
+
+
+def static_figures(receivers: Sequence[Sequence[GnssEpoch]], nav: NavigationData,
+                   windows_s: Sequence[int] = WINDOWS_S) -> StaticFigures:
+    """Figures of static receivers, each alone, their epochs and windows pooled."""
+    return figures(velocity_series(receivers, nav), windows_s)
+
+
+def halves(series: Series) -> tuple[Series, Series]:
+    """Each receiver's series cut in two at the middle of its time span."""
+    first, second = [], []
+    for t, v in series:
+        early = t <= 0.5 * (t[0] + t[-1])
+        first.append((t[early], v[early]))
+        second.append((t[~early], v[~early]))
+    return first, second
 
 
 def load_real_pair(path: Path) -> tuple[list[list[GnssEpoch]], NavigationData]:
@@ -169,37 +186,54 @@ def main(argv: list[str] | None = None) -> int:
                      "holds a 2-minute excerpt of the pair)")
 
     receivers, nav = load_real_pair(args.real)
-    real = static_figures(receivers, nav)
+    real_series = velocity_series(receivers, nav)
+    real = figures(real_series)
     sims: dict[int, StaticFigures] = {}
+    pooled: Series = []
     with tempfile.TemporaryDirectory() as tmp:
         base = args.keep or Path(tmp)
         for seed in _seeds(args.seeds):
             epochs, sim_nav = simulated_static(seed, base / f"static-seed{seed}", args.duration)
-            sims[seed] = static_figures(epochs, sim_nav)
+            series = velocity_series(epochs, sim_nav)
+            sims[seed] = figures(series)
+            pooled += series
             print(f"seed {seed} done", file=sys.stderr, flush=True)
+    pooled_figures = figures(pooled)
+    # The real data's own spread: its two halves (150 s each; no 120 s windows) side by side.
+    real_halves = [figures(h, WINDOWS_S[:-1]) for h in halves(real_series)]
 
     if args.json:
-        print(json.dumps({"real": asdict(real), "simulated": {s: asdict(f)
-                                                                for s, f in sims.items()}}))
+        print(json.dumps({"real": asdict(real), "real_halves": [asdict(h) for h in real_halves],
+                          "simulated": {s: asdict(f) for s, f in sims.items()},
+                          "simulated_pooled": asdict(pooled_figures)}))
         return 0
     seeds = sorted(sims)
     print(f"real: {args.real} ({real.receivers} receivers alone, {real.epochs} velocities); "
           f"simulated: static seeds {seeds} ({sims[seeds[0]].receivers} receivers each)")
+    print("ratio = simulated / real: the median and the worst (farthest from 1) over the seeds, "
+          "and that of the seeds pooled (all their windows together)")
     head = f"{'figure':<32}{'real':>7}" + "".join(f"{'s' + str(s):>7}" for s in seeds)
-    print(head + f"{'ratio median':>14}{'worst':>7}")
+    print(head + f"{'pooled':>8}{'ratio median':>14}{'worst':>7}{'pooled':>8}")
     sim_rows = {s: dict(sims[s].rows()) for s in seeds}
+    pooled_rows = dict(pooled_figures.rows())
     all_ratios = []
     for name, value in real.rows():
         values = [sim_rows[s][name] for s in seeds]
         med, worst = _ratio_summary(value, values)
         all_ratios += [v / value for v in values]
         print(f"{name:<32}{value:>7.1f}" + "".join(f"{v:>7.1f}" for v in values)
-              + f"{med:>14.2f}{worst:>7.2f}")
+              + f"{pooled_rows[name]:>8.1f}{med:>14.2f}{worst:>7.2f}"
+              + f"{pooled_rows[name] / value:>8.2f}")
     vert = "".join(f"{1e3 * sims[s].vertical_rms_mps:>7.1f}" for s in seeds)
-    print(f"{'(velocity RMS vertical, mm/s)':<32}{1e3 * real.vertical_rms_mps:>7.1f}{vert}")
+    print(f"{'(velocity RMS vertical, mm/s)':<32}{1e3 * real.vertical_rms_mps:>7.1f}{vert}"
+          f"{1e3 * pooled_figures.vertical_rms_mps:>8.1f}")
     r = np.array(all_ratios)
-    print(f"all figures and seeds: ratio sim/real {r.min():.2f} .. {r.max():.2f}, "
+    print(f"all figures and seeds: ratio {r.min():.2f} .. {r.max():.2f}, "
           f"{np.mean(np.abs(np.log(r)) <= np.log(1.5)):.0%} within a factor 1.5")
+    first, second = (dict(h.rows()) for h in real_halves)
+    spread = [max(first[n], second[n]) / min(first[n], second[n]) for n in first]
+    print("the real pair's own spread: its first and second 150 s differ by a factor "
+          f"{min(spread):.2f} .. {max(spread):.2f} on these figures (up to 60 s windows)")
     return 0
 
 
