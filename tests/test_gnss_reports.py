@@ -95,27 +95,31 @@ def small_boat_recording(duration: float = 30.0, seed: int = 1) -> SimpleNamespa
 def test_compass_report_on_a_simulated_small_boat():
     rec = small_boat_recording()
     report = compass_report_for(rec, trials=3, as_json=True, hold_window_s=5.0)
-    json.dumps(report, allow_nan=False)
-    fast = report["methods"]["fast"]
-    assert report["trials"] == 3 and fast["fixed_within_1s"] == 1.0
-    assert fast["wrong_fixes"] == 0 and fast["attitude_error_deg"]["heading_rms"] < 1.5
-    assert report["methods"]["conventional"]["fixed_within_10s"] == 1.0
-    v = report["velocity_error"]
-    assert v["all satellites"]["loose"]["horizontal_rms_mps"] < 0.01
-    assert v["all satellites"]["tight"]["horizontal_rms_mps"] < 0.01
+    doc = json.loads(json.dumps(to_json(report), allow_nan=False))  # strict JSON
+    assert len(doc["methods"]["fast"]["per_trial"]) == 3
+    assert doc["velocity_error"]["3 satellites"]["tight filter"]["solved_fraction"] == 1.0
+    fast = report.methods["fast"]
+    assert report.trials == 3 and fast.fixed_within_1s == 1.0
+    assert fast.wrong_fixes == 0 and fast.attitude_error_deg.heading_rms < 1.5
+    assert report.methods["conventional"].fixed_within_10s == 1.0
+    assert report.velocity_error is not None
+    v = report.velocity_error.configurations
+    assert v["all satellites"]["loose"].horizontal_rms_mps < 0.01
+    assert v["all satellites"]["tight"].horizontal_rms_mps < 0.01
     for config in ("3 satellites", "2 satellites", "4 satellites, one per receiver"):
-        assert v[config]["loose"]["solved_fraction"] == 0.0  # loosely coupled cannot
-        assert v[config]["tight filter"]["solved_fraction"] == 1.0
-    assert v["4 satellites, one per receiver"]["tight"]["solved_fraction"] == 1.0
-    assert v["3 satellites"]["tight filter"]["horizontal_rms_mps"] < 0.05
+        assert v[config]["loose"].solved_fraction == 0.0  # loosely coupled cannot
+        assert v[config]["tight filter"].solved_fraction == 1.0
+    assert v["4 satellites, one per receiver"]["tight"].solved_fraction == 1.0
+    assert v["3 satellites"]["tight filter"].horizontal_rms_mps < 0.05
     assert "attitude fix" in format_compass_report(report)
 
 
 @pytest.mark.skipif(not (BUNDLED / "manifest.json").is_file(), reason="no bundled recording")
 def test_compass_report_on_the_bundled_recording():
     report = compass_report(BUNDLED, trials=2, velocity=False, hold_window_s=3.0)
-    assert report["methods"]["fast"]["fixed_within_10s"] == 1.0
-    assert report["methods"]["fast"]["wrong_fixes"] == 0
+    assert report.methods["fast"].fixed_within_10s == 1.0
+    assert report.methods["fast"].wrong_fixes == 0
+    assert report.velocity_error is None and report.methods["fast"].per_trial is None
 
 
 def test_cli_parsers():
