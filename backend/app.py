@@ -8,8 +8,8 @@ live on ``app.state`` and reach the routes as injected dependencies (``deps``).
 from __future__ import annotations
 
 import logging
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Callable
+from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,12 +53,25 @@ class Settings:
     access: Access = field(default_factory=Access)  # tokens required on /api (none: open)
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    settings = settings or Settings()
-    catalog = RecordingCatalog(settings.recordings_dir, settings.default_recording)
-    manager = SessionManager(catalog, settings.engine_factory, settings.max_sessions,
-                             settings.checkpoint_interval_s, settings.abandoned_after_s,
-                             settings.integrity)
+API_DESCRIPTION = (
+    "Times are seconds since the recording start unless named `gpst`; "
+    "positions are metres north/east/down in the local-level frame at the world "
+    "origin; angles in degrees. Numbers are finite and within the documented "
+    "ranges. Every error answers the `ErrorResponse` schema: "
+    "`{\"detail\": \"what is wrong\", \"errors\": [{\"field\", "
+    "\"message\", \"type\"}]}` (`errors` lists the wrong fields of a 422; "
+    "a body that is not JSON is a 422 too, one that cannot be decoded a 400). "
+    "Unknown body fields and unknown query parameters are 422. "
+    "The per-frame stream is the WebSocket `/api/sessions/{id}/stream` "
+    "(schema of its frame header: `GET /api/stream/schema`). "
+    "Off loopback every `/api` request needs `Authorization: Bearer <token>` "
+    "(the stream: `?token=`); a read-only token may only read and watch.")
+
+
+def _lifespan(settings: Settings, manager: SessionManager
+              ) -> Callable[[FastAPI], AbstractAsyncContextManager[None]]:
+    """The app's start and end: the 3-D viewer (when asked) follows the newest session; at
+    the end every session is closed."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -87,6 +100,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if view is not None:
                 view.stop()
 
+    return lifespan
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    catalog = RecordingCatalog(settings.recordings_dir, settings.default_recording)
+    manager = SessionManager(catalog, settings.engine_factory, settings.max_sessions,
+                             settings.checkpoint_interval_s, settings.abandoned_after_s,
+                             settings.integrity)
+
+    lifespan = _lifespan(settings, manager)
+
     # Every route may answer 422 (a wrong field or an unknown query parameter), in the one
     # error schema; with access control also 401 and 403.
     responses: dict[int | str, dict[str, Any]] = {
@@ -100,18 +125,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=VERSION,
         summary="Replays recorded berthings through the camera + GNSS compass + IMU fusion and "
                 "streams the pose and the AR berthing overlay.",
-        description="Times are seconds since the recording start unless named `gpst`; "
-                    "positions are metres north/east/down in the local-level frame at the world "
-                    "origin; angles in degrees. Numbers are finite and within the documented "
-                    "ranges. Every error answers the `ErrorResponse` schema: "
-                    "`{\"detail\": \"what is wrong\", \"errors\": [{\"field\", "
-                    "\"message\", \"type\"}]}` (`errors` lists the wrong fields of a 422; "
-                    "a body that is not JSON is a 422 too, one that cannot be decoded a 400). "
-                    "Unknown body fields and unknown query parameters are 422. "
-                    "The per-frame stream is the WebSocket `/api/sessions/{id}/stream` "
-                    "(schema of its frame header: `GET /api/stream/schema`). "
-                    "Off loopback every `/api` request needs `Authorization: Bearer <token>` "
-                    "(the stream: `?token=`); a read-only token may only read and watch.",
+        description=API_DESCRIPTION,
         lifespan=lifespan,
         responses=responses,
         dependencies=[Depends(reject_unknown_query)],

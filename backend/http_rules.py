@@ -36,7 +36,8 @@ def reject_unknown_query(connection: HTTPConnection) -> None:
         return
     route = connection.scope.get("route")
     dependant = getattr(route, "dependant", None)
-    if dependant is None:
+    # the page's own address (``/?recording=…``, outside the API schema) is read by the page
+    if dependant is None or not getattr(route, "include_in_schema", True):
         return
     known = _query_names(dependant)
     unknown = sorted(set(connection.query_params) - known)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import replace
 
 import numpy as np
 
@@ -24,14 +23,14 @@ from .cpp import (
     SAME_CARRIER_SYSTEMS,
     EpochGeometry,
     EtaRow,
+    atmosphere_corrected,
     detect_cycle_slips,
     elevation_sigma,
     eta_observations,
     loose_velocity,
 )
 from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput
-from .ephemeris import klobuchar_delay, troposphere_delay
-from .frames import WAVELENGTH_L1, ecef_to_ned, ned_to_ecef
+from .frames import ecef_to_ned, ned_to_ecef
 from .gnss_epochs import N_RECEIVERS, GnssFront
 from .integrity import IntegrityMonitor
 from .options import FusionOptions, WorldOrigin
@@ -167,7 +166,7 @@ class CarrierPhaseCoupling:
             rows = eta_observations(front.prev, epochs, front.prev_geo, geo, slips=slips,
                                     phase_sigma_m=cfg.phase_sigma_m,
                                     common_clock=opt.common_clock).rows
-            rows = self._atmosphere_corrected(rows, front.prev_geo, geo, origin)
+            rows = atmosphere_corrected(rows, front.prev_geo, geo, self.nav, origin.llh)
             if rows and self.monitor.clock_jump(t, self._common_range_change(rows, ekf)):
                 rows = []
         # Single differences: integers re-resolved after slips, rows for the attitude.
@@ -185,30 +184,6 @@ class CarrierPhaseCoupling:
         front.advance(epochs, geo)
         self.message = (f"{self.n_sats} sats in the velocity, {self.n_sd_sats} in the single "
                         f"differences; gate rejections {_gate_text(ekf)}")
-
-    def _atmosphere_corrected(self, rows: Sequence[EtaRow], prev: EpochGeometry,
-                              geo: EpochGeometry, origin: WorldOrigin) -> list[EtaRow]:
-        """Remove the modelled change of the tropospheric and ionospheric delays over the
-        interval from the TDCP (mm/s for a low satellite: the delays grow as it sets)."""
-        lat, lon, h = origin.llh
-        nav = self.nav
-        cache: dict[str, float] = {}
-        out = []
-        for r in rows:
-            if r.sat not in cache:
-                a, b = prev.satellites[r.sat], geo.satellites[r.sat]
-                d_tropo = troposphere_delay(b.elevation, h) - troposphere_delay(a.elevation, h)
-                d_iono = 0.0
-                if nav.iono_alpha is not None and nav.iono_beta is not None:
-                    scale = (geo.wavelengths[r.sat] / WAVELENGTH_L1) ** 2
-                    d_iono = scale * (
-                        klobuchar_delay(nav.iono_alpha, nav.iono_beta, geo.time, lat, lon,
-                                        b.elevation, b.azimuth)
-                        - klobuchar_delay(nav.iono_alpha, nav.iono_beta, prev.time, lat, lon,
-                                          a.elevation, a.azimuth))
-                cache[r.sat] = (d_tropo - d_iono) / r.interval  # phase: +T, −I
-            out.append(replace(r, measured=r.measured - cache[r.sat]))
-        return out
 
     def _apply(self, rows: Sequence[EtaRow], sd_rows: Sequence[SdRow], ekf: ErrorStateEkf,
                origin: WorldOrigin) -> set[str]:

@@ -29,19 +29,27 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .ephemeris import (
     Geometry,
     carrier_wavelength,
+    klobuchar_delay,
     rotate_earth,
     satellite_geometry,
     satellite_state,
     select_ephemeris,
+    troposphere_delay,
 )
-from .frames import OMEGA_EARTH, SPEED_OF_LIGHT, C_ecef_to_level, ecef_to_geodetic
+from .frames import (
+    OMEGA_EARTH,
+    SPEED_OF_LIGHT,
+    WAVELENGTH_L1,
+    C_ecef_to_level,
+    ecef_to_geodetic,
+)
 from .records import GlonassEphemeris, GnssEpoch, KeplerEphemeris, NavigationData
 from .spp import standalone_position
 
@@ -336,6 +344,32 @@ def eta_observations(
     return EtaSet(time=time, rows=rows, rejected=rejected)
 
 
+def atmosphere_corrected(rows: Sequence[EtaRow], prev: EpochGeometry, curr: EpochGeometry,
+                         nav: NavigationData, receiver_llh: np.ndarray) -> list[EtaRow]:
+    """``rows`` with the modelled change of the tropospheric and ionospheric delays over the
+    interval ``prev`` → ``curr`` removed (mm/s for a low satellite: the delays grow as it
+    sets). The models are the broadcast Klobuchar ionosphere (when ``nav`` has its parameters)
+    and the standard-atmosphere troposphere at ``receiver_llh`` (rad, rad, m)."""
+    lat, lon, h = (float(x) for x in receiver_llh)
+    cache: dict[str, float] = {}
+    out = []
+    for r in rows:
+        if r.sat not in cache:
+            a, b = prev.satellites[r.sat], curr.satellites[r.sat]
+            d_tropo = troposphere_delay(b.elevation, h) - troposphere_delay(a.elevation, h)
+            d_iono = 0.0
+            if nav.iono_alpha is not None and nav.iono_beta is not None:
+                scale = (curr.wavelengths[r.sat] / WAVELENGTH_L1) ** 2
+                d_iono = scale * (
+                    klobuchar_delay(nav.iono_alpha, nav.iono_beta, curr.time, lat, lon,
+                                    b.elevation, b.azimuth)
+                    - klobuchar_delay(nav.iono_alpha, nav.iono_beta, prev.time, lat, lon,
+                                      a.elevation, a.azimuth))
+            cache[r.sat] = (d_tropo - d_iono) / r.interval  # phase: +T, −I
+        out.append(replace(r, measured=r.measured - cache[r.sat]))
+    return out
+
+
 def _per_receiver(geo: EpochGeometry | Sequence[EpochGeometry | None], n: int
                   ) -> list[EpochGeometry | None]:
     if isinstance(geo, EpochGeometry):
@@ -477,6 +511,45 @@ def tdcp_velocity(
                            common_clock=False)
     excluded = {s: why for (_, s), why in eta.rejected.items() if s[0] in systems}
     return loose_velocity(eta.rows, g2.C_ecef_to_level, excluded)
+
+
+def receiver_velocities(
+    epochs: Sequence[GnssEpoch],
+    nav: NavigationData,
+    *,
+    systems: str = SAME_CARRIER_SYSTEMS,
+    elevation_mask_deg: float = 10.0,
+    correct_atmosphere: bool = True,
+) -> list[ReceiverVelocity]:
+    """TDCP velocity of ONE receiver over its consecutive epochs (its own position and clock).
+
+    Each epoch's geometry is computed at its standalone position and clock bias (chained from
+    the previous fix); with ``correct_atmosphere`` the rows are corrected as in the fusion
+    (:func:`atmosphere_corrected`). An epoch without a standalone fix or without a velocity
+    solution is skipped (the next interval starts after it).
+    """
+    out: list[ReceiverVelocity] = []
+    prev = prev_geo = position = None
+    for epoch in epochs:
+        epoch = GnssEpoch(epoch.time, {s: o for s, o in epoch.satellites.items()
+                                       if s[0] in systems}, epoch.flag)
+        spp = standalone_position(epoch, nav, elevation_mask_deg=elevation_mask_deg,
+                                  initial_ecef=position)
+        if spp is None:
+            prev = prev_geo = None
+            continue
+        position = spp.position
+        geo = epoch_geometry(nav, list(epoch.satellites), epoch.time, position,
+                             spp.clock_bias_m / SPEED_OF_LIGHT, elevation_mask_deg)
+        if prev_geo is not None:
+            rows = eta_observations([prev], [epoch], prev_geo, geo, common_clock=False).rows
+            if correct_atmosphere:
+                rows = atmosphere_corrected(rows, prev_geo, geo, nav, ecef_to_geodetic(position))
+            v = loose_velocity(rows, geo.C_ecef_to_level)
+            if v is not None:
+                out.append(v)
+        prev, prev_geo = epoch, geo
+    return out
 
 
 # --------------------------------------------------------------- tightly coupled η

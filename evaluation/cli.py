@@ -68,7 +68,8 @@ def cmd_compass(args: argparse.Namespace) -> int:
     path = Path(args.recording) if args.recording else DEFAULT_RECORDING
     report = compass_report(path, trials=args.trials, gps_only=args.gps_only,
                             sky_mask_deg=args.sky_mask, as_json=args.json)
-    print(json.dumps(report, indent=2) if args.json else format_compass_report(report))
+    print(json.dumps(to_json(report), indent=2, allow_nan=False) if args.json
+          else format_compass_report(report))
     return 0
 
 
@@ -94,7 +95,8 @@ def cmd_baseline(args: argparse.Namespace) -> int:
     report = baseline_report(args.base, args.rover, args.nav, as_json=args.json,
                              restart_every_s=args.restart_every,
                              base_position_llh_deg=base_pos, rover_position_llh_deg=rover_pos)
-    print(json.dumps(report, indent=2) if args.json else format_baseline_report(report))
+    print(json.dumps(to_json(report), indent=2, allow_nan=False) if args.json
+          else format_baseline_report(report))
     return 0
 
 

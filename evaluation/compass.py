@@ -17,6 +17,7 @@ of the thesis' experiment (fig. 12). ``gps_only`` restricts both compass and vel
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,15 @@ from estimator.frames import SPEED_OF_LIGHT, euler_to_dcm, ned_to_ecef, wrap_ang
 from estimator.records import GnssEpoch
 from estimator.spp import standalone_position
 from recordings.format import Recording, load
+
+from .gnss_records import (
+    ArrayVelocity,
+    AttitudeErrors,
+    CompassMethodScores,
+    CompassReport,
+    CompassTrial,
+    VelocityErrorStats,
+)
 
 WRONG_FIX_DEG = 3.0
 SWITCH_CONFIGS = ("4 satellites, one per receiver", "3 satellites", "2 satellites")
@@ -119,57 +129,68 @@ class _Prepared:
 # ------------------------------------------------------------------------ attitude
 
 
+def _cold_start(prep: _Prepared, method: str, s: int, systems: str, max_window_s: float,
+                hold_window_s: float) -> tuple[CompassTrial, list[np.ndarray]]:
+    """One cold start at epoch ``s``: the trial and the attitude errors (deg; roll, pitch,
+    heading) of its fixed epochs, the first at the fix."""
+    comp = GnssCompass(prep.nav, prep.antennas, method=method, systems=systems)
+    t0 = prep.times[s]
+    trial = CompassTrial(start_gpst=t0, time_to_fix_s=None,
+                         window_s=min(max_window_s, prep.times[-1] - t0 + prep.interval))
+    errors: list[np.ndarray] = []
+    fix_time = None
+    for k in range(s, len(prep.times)):
+        t = prep.times[k]
+        if t - t0 >= max_window_s or (fix_time is not None and t - fix_time > hold_window_s):
+            break
+        sol = comp.update(prep.epochs[k], prep.tilt[k])
+        if not sol.fixed:
+            continue
+        err = np.degrees(wrap_angle(sol.euler - prep.euler_ref[k]))
+        errors.append(err)
+        if fix_time is None:
+            fix_time = t
+            trial = dataclasses.replace(
+                trial, time_to_fix_s=t - t0 + prep.interval, satellites=sol.n_satellites,
+                heading_error_deg=float(err[2]), wrong=bool(abs(err[2]) > WRONG_FIX_DEG))
+    return trial, errors
+
+
 def _run_trials(prep: _Prepared, method: str, starts: list[int], systems: str,
-                max_window_s: float, hold_window_s: float) -> dict[str, Any]:
+                max_window_s: float, hold_window_s: float, keep_trials: bool
+                ) -> CompassMethodScores:
+    """Cold starts of one method at the epochs ``starts``: fig. 13's fractions and the errors."""
     per_trial, errors, first_errors = [], [], []
     for s in starts:
-        comp = GnssCompass(prep.nav, prep.antennas, method=method, systems=systems)
-        t0 = prep.times[s]
-        entry: dict[str, Any] = {"start_gpst": t0, "time_to_fix_s": None,
-                                 "window_s": min(max_window_s, prep.times[-1] - t0 + prep.interval)}
-        fix_time = None
-        for k in range(s, len(prep.times)):
-            t = prep.times[k]
-            if t - t0 >= max_window_s or (fix_time is not None and t - fix_time > hold_window_s):
-                break
-            sol = comp.update(prep.epochs[k], prep.tilt[k])
-            if not sol.fixed:
-                continue
-            err = np.degrees(wrap_angle(sol.euler - prep.euler_ref[k]))
-            errors.append(err)
-            if fix_time is None:
-                fix_time = t
-                entry.update(time_to_fix_s=t - t0 + prep.interval, satellites=sol.n_satellites,
-                             heading_error_deg=float(err[2]), wrong=bool(abs(err[2]) >
-                                                                          WRONG_FIX_DEG))
-                first_errors.append(err)
-        per_trial.append(entry)
-    ttf = [e["time_to_fix_s"] for e in per_trial]
+        trial, errs = _cold_start(prep, method, s, systems, max_window_s, hold_window_s)
+        per_trial.append(trial)
+        errors += errs
+        first_errors += errs[:1]
+    ttf = [e.time_to_fix_s for e in per_trial]
     n = len(per_trial)
 
     def within(limit: float) -> float:
         return sum(1 for x in ttf if x is not None and x <= limit + 1e-6) / max(n, 1)
 
-    fixed = [e for e in per_trial if e["time_to_fix_s"] is not None]
+    fixed = [e for e in per_trial if e.time_to_fix_s is not None]
     E = np.array(errors).reshape(-1, 3)
     F = np.array(first_errors).reshape(-1, 3)
-    return {
-        "trials": n,
-        "fixed_within_1s": within(1.0),
-        "fixed_within_10s": within(10.0),
-        "fixed_within_150s": within(150.0),
-        "median_time_to_fix_s": float(np.median([x for x in ttf if x is not None]))
+    return CompassMethodScores(
+        trials=n,
+        fixed_within_1s=within(1.0),
+        fixed_within_10s=within(10.0),
+        fixed_within_150s=within(150.0),
+        median_time_to_fix_s=float(np.median([x for x in ttf if x is not None]))
         if fixed else None,
-        "wrong_fixes": sum(1 for e in fixed if e["wrong"]),
-        "wrong_fix_rate": (sum(1 for e in fixed if e["wrong"]) / len(fixed)) if fixed else None,
-        "first_fix_heading_rms_deg": _rms(F[:, 2]),
-        "attitude_error_deg": {
-            "epochs": int(len(E)),
-            "heading_rms": _rms(E[:, 2]), "pitch_rms": _rms(E[:, 1]), "roll_rms": _rms(E[:, 0]),
-            "heading_max": float(np.abs(E[:, 2]).max()) if len(E) else None,
-        },
-        "per_trial": per_trial,
-    }
+        wrong_fixes=sum(1 for e in fixed if e.wrong),
+        wrong_fix_rate=(sum(1 for e in fixed if e.wrong) / len(fixed)) if fixed else None,
+        first_fix_heading_rms_deg=_rms(F[:, 2]),
+        attitude_error_deg=AttitudeErrors(
+            epochs=int(len(E)),
+            heading_rms=_rms(E[:, 2]), pitch_rms=_rms(E[:, 1]), roll_rms=_rms(E[:, 0]),
+            heading_max=float(np.abs(E[:, 2]).max()) if len(E) else None),
+        per_trial=per_trial if keep_trials else None,
+    )
 
 
 # ------------------------------------------------------------------------ velocity
@@ -205,13 +226,14 @@ class _VelocityErrors:
                 self.errors["tight filter"].append(filt.velocity_ned - truth)
         self.prev = cur
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, VelocityErrorStats]:
+        """Per estimator ("loose", "tight", "tight filter")."""
         out = {}
         for name, errs in self.errors.items():
             E = np.array(errs).reshape(-1, 3)
-            out[name] = {"solved_fraction": len(E) / max(self.count, 1),
-                         "horizontal_rms_mps": _rms(np.hypot(E[:, 0], E[:, 1])),
-                         "vertical_rms_mps": _rms(E[:, 2])}
+            out[name] = VelocityErrorStats(solved_fraction=len(E) / max(self.count, 1),
+                                           horizontal_rms_mps=_rms(np.hypot(E[:, 0], E[:, 1])),
+                                           vertical_rms_mps=_rms(E[:, 2]))
         return out
 
 
@@ -226,7 +248,7 @@ def _configured(c: str, eps: list[GnssEpoch | None], kept: dict[str, list[str]]
     return [_filter_epoch(e, set(kept[c]), "GEJRC") for e in eps]
 
 
-def _velocity_pass(prep: _Prepared, reduced_after_s: float) -> dict[str, Any]:
+def _velocity_pass(prep: _Prepared, reduced_after_s: float) -> ArrayVelocity:
     compass = GnssCompass(prep.nav, prep.antennas, method="fast")
     t_switch = prep.times[0] + reduced_after_s
     configs = ("all satellites", *SWITCH_CONFIGS)
@@ -254,10 +276,9 @@ def _velocity_pass(prep: _Prepared, reduced_after_s: float) -> dict[str, Any]:
             passes[c].step(prep, _configured(c, eps, kept), prev_geo, geo, C,
                            scored=c == "all satellites" or bool(kept))
         prev_geo = geo
-    out: dict[str, Any] = {"reduced_after_s": reduced_after_s,
-                           "kept_satellites": {c: kept.get(c) for c in SWITCH_CONFIGS}}
-    out.update({c: passes[c].summary() for c in configs})
-    return out
+    return ArrayVelocity(reduced_after_s=reduced_after_s,
+                         kept_satellites={c: kept.get(c) for c in SWITCH_CONFIGS},
+                         configurations={c: passes[c].summary() for c in configs})
 
 
 # -------------------------------------------------------------------------- report
@@ -275,37 +296,34 @@ def compass_report_for(
     hold_window_s: float = 20.0,
     reduced_after_s: float = 10.0,
     velocity: bool = True,
-) -> dict[str, Any]:
+) -> CompassReport:
     """The report on an already loaded recording (anything with ``gnss``, ``nav``,
-    ``calibration.antennas_body``, ``imu``, ``reference`` and ``manifest``)."""
+    ``calibration.antennas_body``, ``imu``, ``reference`` and ``manifest``). ``as_json`` keeps
+    the per-trial results (``records.to_json`` gives the JSON)."""
     systems = "G" if gps_only else "GEJ"
     prep = _Prepared(rec, systems, sky_mask_deg, sky_mask_centre_deg)
     n = len(prep.times)
     last_start = max(n - min(10, n // 2), 1)
     starts = sorted(set(np.linspace(0, last_start - 1, max(trials, 1)).round().astype(int)))
-    report: dict[str, Any] = {
-        "recording": getattr(rec.manifest, "name", "?"),
-        "epochs": n,
-        "interval_s": prep.interval,
-        "systems": systems,
-        "sky_mask_deg": sky_mask_deg,
-        "sky_mask_centre_deg": sky_mask_centre_deg,
-        "masked_satellites": sorted(prep.masked),
-        "trials": len(starts),
-        "methods": {m: _run_trials(prep, m, starts, systems, max_window_s, hold_window_s)
-                    for m in ("fast", "conventional")},
-    }
-    if velocity:
-        report["velocity_error"] = _velocity_pass(prep, reduced_after_s)
-    if not as_json:
-        for m in report["methods"].values():
-            m.pop("per_trial")
-    return report
+    return CompassReport(
+        recording=getattr(rec.manifest, "name", "?"),
+        epochs=n,
+        interval_s=prep.interval,
+        systems=systems,
+        sky_mask_deg=sky_mask_deg,
+        sky_mask_centre_deg=sky_mask_centre_deg,
+        masked_satellites=sorted(prep.masked),
+        trials=len(starts),
+        methods={m: _run_trials(prep, m, starts, systems, max_window_s, hold_window_s,
+                                keep_trials=as_json)
+                 for m in ("fast", "conventional")},
+        velocity_error=_velocity_pass(prep, reduced_after_s) if velocity else None,
+    )
 
 
 def compass_report(recording_path: str | Path, trials: int = 20, gps_only: bool = False,
                    sky_mask_deg: float = 0.0, as_json: bool = False, **options: Any
-                   ) -> dict[str, Any]:
+                   ) -> CompassReport:
     """Load a recording (``recordings.format.load``) and run :func:`compass_report_for`."""
     return compass_report_for(load(recording_path), trials=trials, gps_only=gps_only,
                               sky_mask_deg=sky_mask_deg, as_json=as_json, **options)
@@ -315,33 +333,31 @@ def _f(x: Any, spec: str = ".3f") -> str:
     return "-" if x is None else format(x, spec)
 
 
-def format_compass_report(report: dict[str, Any]) -> str:
+def format_compass_report(report: CompassReport) -> str:
     """Readable tables of :func:`compass_report`."""
     lines = [
-        f"{report['recording']}: {report['epochs']} epochs, systems {report['systems']}, "
-        f"sky mask {report['sky_mask_deg']:g} deg around azimuth "
-        f"{report['sky_mask_centre_deg']:g}, {report['trials']} cold starts",
+        f"{report.recording}: {report.epochs} epochs, systems {report.systems}, "
+        f"sky mask {report.sky_mask_deg:g} deg around azimuth "
+        f"{report.sky_mask_centre_deg:g}, {report.trials} cold starts",
         "",
         "attitude fix     <=1 s   <=10 s  <=150 s  median  wrong  1st-fix hdg RMS  "
         "hdg RMS  pitch RMS  roll RMS (deg)",
     ]
-    for name, m in report["methods"].items():
-        a = m["attitude_error_deg"]
+    for name, m in report.methods.items():
+        a = m.attitude_error_deg
         lines.append(
-            f"  {name:<13} {100 * m['fixed_within_1s']:5.0f}%  {100 * m['fixed_within_10s']:5.0f}%"
-            f"  {100 * m['fixed_within_150s']:5.0f}%  {_f(m['median_time_to_fix_s'], '5.0f')} s"
-            f"  {m['wrong_fixes']:5d}  {_f(m['first_fix_heading_rms_deg']):>15}"
-            f"  {_f(a['heading_rms']):>7}  {_f(a['pitch_rms']):>9}  {_f(a['roll_rms']):>8}")
-    v = report.get("velocity_error")
-    if v:
+            f"  {name:<13} {100 * m.fixed_within_1s:5.0f}%  {100 * m.fixed_within_10s:5.0f}%"
+            f"  {100 * m.fixed_within_150s:5.0f}%  {_f(m.median_time_to_fix_s, '5.0f')} s"
+            f"  {m.wrong_fixes:5d}  {_f(m.first_fix_heading_rms_deg):>15}"
+            f"  {_f(a.heading_rms):>7}  {_f(a.pitch_rms):>9}  {_f(a.roll_rms):>8}")
+    v = report.velocity_error
+    if v is not None:
         lines += ["", f"velocity error of the array (m/s); reduced sets after "
-                      f"{v['reduced_after_s']:g} s: {v['kept_satellites']}",
+                      f"{v.reduced_after_s:g} s: {v.kept_satellites}",
                   f"  {'satellites':<32} {'estimator':<13} solved  horiz RMS  vert RMS"]
-        for c, per in v.items():
-            if not isinstance(per, dict) or "loose" not in per:
-                continue
-            for name, s in per.items():
-                lines.append(f"  {c:<32} {name:<13} {100 * s['solved_fraction']:5.0f}%  "
-                             f"{_f(s['horizontal_rms_mps'], '9.4f')}  "
-                             f"{_f(s['vertical_rms_mps'], '8.4f')}")
+        for c, per in v.configurations.items():
+            for name, e in per.items():
+                lines.append(f"  {c:<32} {name:<13} {100 * e.solved_fraction:5.0f}%  "
+                             f"{_f(e.horizontal_rms_mps, '9.4f')}  "
+                             f"{_f(e.vertical_rms_mps, '8.4f')}")
     return "\n".join(lines)

@@ -1,7 +1,8 @@
 """Typed results of the evaluation, one dataclass per group of figures of the replay report
 (the thesis' tables 17–21, fig. 14, the port structure, seed 002's fig. 7 and seed 000's
 fig. 10, the integrity). The JSON of ``berthing-aid replay --report --json`` is these records
-(``to_json``), so its keys are these field names."""
+(``to_json``), so its keys are these field names. The records of ``berthing-aid compass`` and
+``baseline`` are in ``evaluation.gnss_records``."""
 
 from __future__ import annotations
 
@@ -385,10 +386,28 @@ class ReplayReport:
 # -------------------------------------------------------------------------------- JSON
 
 
+# Field metadata for ``to_json``: a key present only when the figure exists (None: the key is
+# left out, not null), and a dict whose items are keys of the enclosing object.
+OMIT_IF_NONE = {"json": "omit if None"}
+INLINE = {"json": "inline"}
+
+
+def omitted_if_none() -> Any:
+    """A field defaulting to None that ``to_json`` leaves out while it is None."""
+    return field(default=None, metadata=OMIT_IF_NONE)
+
+
 def to_json(x: Any) -> Any:
     """Strict-JSON form of a result (dataclasses as objects, NaN/inf as null)."""
     if dataclasses.is_dataclass(x) and not isinstance(x, type):
-        return {f.name: to_json(getattr(x, f.name)) for f in dataclasses.fields(x)}
+        out: dict[str, Any] = {}
+        for f in dataclasses.fields(x):
+            value, how = getattr(x, f.name), f.metadata.get("json")
+            if how == "inline":
+                out.update(to_json(value))
+            elif value is not None or how != "omit if None":
+                out[f.name] = to_json(value)
+        return out
     if isinstance(x, dict):
         return {str(k): to_json(v) for k, v in x.items()}
     if isinstance(x, list | tuple):

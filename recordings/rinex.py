@@ -251,16 +251,67 @@ def _sat_id(raw: str) -> str:
     return raw[0] + raw[1:3].replace(" ", "0")
 
 
+@dataclass
+class _HeaderCommon:
+    """The observation-header records RINEX 2 and 3 share, read line by line."""
+
+    marker: str = ""
+    receiver: str = ""
+    position: np.ndarray | None = None
+    interval: float | None = None
+    leap: int | None = None
+    first_obs: tuple[datetime, float, str, int] | None = None  # (time, seconds, system, line)
+    comments: list[str] = field(default_factory=list)
+
+    def read(self, label: str, line: str, n: int) -> bool:
+        """Take the record if it is one of the shared ones (True); ValueError if malformed."""
+        if label == "COMMENT":
+            self.comments.append(line[:60].rstrip())
+        elif label == "MARKER NAME":
+            self.marker = line[:60].strip()
+        elif label == "REC # / TYPE / VERS":
+            self.receiver = line[20:40].strip()
+        elif label == "APPROX POSITION XYZ":
+            self.position = np.array([float(line[k:k + 14]) for k in (0, 14, 28)])
+        elif label == "INTERVAL":
+            self.interval = float(line[0:10])
+        elif label == "LEAP SECONDS":
+            self.leap = _parse_leap_seconds(line)
+        elif label == "TIME OF FIRST OBS":
+            t = datetime(*(int(line[k:k + 6]) for k in range(0, 30, 6)))
+            self.first_obs = (t, float(line[30:43]), line[48:51].strip(), n)
+        else:
+            return False
+        return True
+
+    def time_first(self, path: str, file_system: str) -> tuple[float | None, str]:
+        """GPST of the first observation (None if not given) and the file's time system."""
+        time_system = _DEFAULT_TIME_SYSTEM.get(file_system, "GPS")
+        if self.first_obs is None:
+            return None, time_system
+        t, sec, system, n = self.first_obs
+        time_system = system or time_system
+        try:
+            return gpst_from_datetime(t) + sec + _time_offset(time_system, self.leap, t), \
+                time_system
+        except ValueError as exc:
+            raise _error(path, n, str(exc)) from None
+
+    def header(self, version: float, obs_types: dict[str, list[str]],
+               slots: dict[str, int], path: str, file_system: str) -> ObsHeader:
+        time_first, time_system = self.time_first(path, file_system)
+        return ObsHeader(version=version, marker_name=self.marker, receiver_type=self.receiver,
+                         approx_position_ecef=self.position, obs_types=obs_types,
+                         interval=self.interval, time_first_obs=time_first,
+                         glonass_slots=slots, leap_seconds=self.leap, comments=self.comments,
+                         time_system=time_system)
+
+
 def _parse_obs_header(path: str, lines: list[str]) -> tuple[ObsHeader, int]:
     """Header fields and the index of the first data line."""
     version = _check_first_line(path, lines, "O", "observation")
     file_system = lines[0][40:41] or "M"
-    marker = receiver = ""
-    position: np.ndarray | None = None
-    interval: float | None = None
-    leap: int | None = None
-    first_obs: tuple[datetime, float, str, int] | None = None
-    comments: list[str] = []
+    common = _HeaderCommon()
     obs_types: dict[str, list[str]] = {}
     declared: dict[str, tuple[int, int]] = {}  # system -> (count, line number)
     slots: dict[str, int] = {}
@@ -276,22 +327,9 @@ def _parse_obs_header(path: str, lines: list[str]) -> tuple[ObsHeader, int]:
                 break
             if line.startswith(">"):
                 raise _error(path, n, "missing END OF HEADER (data epoch found inside the header)")
-            if label == "COMMENT":
-                comments.append(line[:60].rstrip())
-            elif label == "MARKER NAME":
-                marker = line[:60].strip()
-            elif label == "REC # / TYPE / VERS":
-                receiver = line[20:40].strip()
-            elif label == "APPROX POSITION XYZ":
-                position = np.array([float(line[k:k + 14]) for k in (0, 14, 28)])
-            elif label == "INTERVAL":
-                interval = float(line[0:10])
-            elif label == "LEAP SECONDS":
-                leap = _parse_leap_seconds(line)
-            elif label == "TIME OF FIRST OBS":
-                t = datetime(*(int(line[k:k + 6]) for k in range(0, 30, 6)))
-                first_obs = (t, float(line[30:43]), line[48:51].strip(), n)
-            elif label == "SYS / # / OBS TYPES":
+            if common.read(label, line, n):
+                continue
+            if label == "SYS / # / OBS TYPES":
                 if line[0] != " ":
                     current_sys = line[0]
                     if current_sys not in SYSTEMS:
@@ -332,21 +370,7 @@ def _parse_obs_header(path: str, lines: list[str]) -> tuple[ObsHeader, int]:
         raise _error(path, slot_count[1], f"GLONASS SLOT / FRQ # announces {slot_count[0]} "
                                           f"satellites but lists {len(slots)}")
 
-    time_system = _DEFAULT_TIME_SYSTEM.get(file_system, "GPS")
-    time_first: float | None = None
-    if first_obs is not None:
-        t, sec, system, n = first_obs
-        time_system = system or time_system
-        try:
-            time_first = gpst_from_datetime(t) + sec + _time_offset(time_system, leap, t)
-        except ValueError as exc:
-            raise _error(path, n, str(exc)) from None
-
-    header = ObsHeader(version=version, marker_name=marker, receiver_type=receiver,
-                       approx_position_ecef=position, obs_types=obs_types, interval=interval,
-                       time_first_obs=time_first, glonass_slots=slots, leap_seconds=leap,
-                       comments=comments, time_system=time_system)
-    return header, i + 1
+    return common.header(version, obs_types, slots, path, file_system), i + 1
 
 
 # ------------------------------------------------------------------- observation data
@@ -533,12 +557,7 @@ def _parse_obs_header_v2(path: str, lines: list[str]) -> tuple[ObsHeader, int, l
     """Header of a RINEX 2 observation file, its first data line index and its types."""
     version = float(lines[0][0:9])
     file_system = (lines[0][40:41].strip() or "G")
-    marker = receiver = ""
-    position: np.ndarray | None = None
-    interval: float | None = None
-    leap: int | None = None
-    first_obs: tuple[datetime, float, str, int] | None = None
-    comments: list[str] = []
+    common = _HeaderCommon()
     types: list[str] = []
     declared: tuple[int, int] | None = None
     for i in range(1, len(lines)):
@@ -548,25 +567,12 @@ def _parse_obs_header_v2(path: str, lines: list[str]) -> tuple[ObsHeader, int, l
         try:
             if label == "END OF HEADER":
                 break
-            if label == "COMMENT":
-                comments.append(line[:60].rstrip())
-            elif label == "MARKER NAME":
-                marker = line[:60].strip()
-            elif label == "REC # / TYPE / VERS":
-                receiver = line[20:40].strip()
-            elif label == "APPROX POSITION XYZ":
-                position = np.array([float(line[k:k + 14]) for k in (0, 14, 28)])
-            elif label == "INTERVAL":
-                interval = float(line[0:10])
-            elif label == "LEAP SECONDS":
-                leap = int(line[0:6])
-            elif label == "WAVELENGTH FACT L1/2":
+            if common.read(label, line, n):
+                continue
+            if label == "WAVELENGTH FACT L1/2":
                 if line[0:6].strip() == "2":
                     raise _error(path, n, "half-wavelength L1 phase (WAVELENGTH FACT 2) is "
                                           "not supported")
-            elif label == "TIME OF FIRST OBS":
-                t = datetime(*(int(line[k:k + 6]) for k in range(0, 30, 6)))
-                first_obs = (t, float(line[30:43]), line[48:51].strip(), n)
             elif label == "# / TYPES OF OBSERV":
                 if line[0:6].strip():
                     if declared is not None:
@@ -597,20 +603,7 @@ def _parse_obs_header_v2(path: str, lines: list[str]) -> tuple[ObsHeader, int, l
     if any(sys_ not in _V2_ATTRIBUTES for sys_ in systems):
         raise _error(path, 1, f"satellite system {file_system!r} is not supported")
     obs_types = {sys_: list(_v3_codes(sys_, types)) for sys_ in systems}
-    time_system = _DEFAULT_TIME_SYSTEM.get(file_system, "GPS")
-    time_first: float | None = None
-    if first_obs is not None:
-        t, sec, system, n = first_obs
-        time_system = system or time_system
-        try:
-            time_first = gpst_from_datetime(t) + sec + _time_offset(time_system, leap, t)
-        except ValueError as exc:
-            raise _error(path, n, str(exc)) from None
-    header = ObsHeader(version=version, marker_name=marker, receiver_type=receiver,
-                       approx_position_ecef=position, obs_types=obs_types, interval=interval,
-                       time_first_obs=time_first, glonass_slots={}, leap_seconds=leap,
-                       comments=comments, time_system=time_system)
-    return header, i + 1, types
+    return common.header(version, obs_types, {}, path, file_system), i + 1, types
 
 
 def _v2_satellites(path: str, lines: list[str], i: int, count: int) -> tuple[list[str], int]:

@@ -240,6 +240,9 @@ def test_non_finite_and_absurd_numbers_are_422_naming_the_field(client: httpx.Cl
                     headers={"content-type": "application/json"})
     assert r.status_code == 400 and _is_error_body(r)["errors"] == []
     assert client.get(f"{base}/pose", params={"t": 2.0}).status_code in (200, 409)
+    # the page's own address carries the page's parameters: not an API query
+    page = client.get("/", params={"recording": "x", "session": "y"})
+    assert page.status_code == 200 and "<html" in page.text.lower()
 
 
 def test_methods_berth_line_and_not_found_say_exactly_what_is(server: Live,

@@ -470,8 +470,10 @@ def test_several_clients_slow_client_gets_the_newest_frame(ref_live: Live):
         late = [f.received - f.header["processed_at"] for f in slow]
         # Newest frame: bounded by the client's own work per frame (one frame in flight while
         # it works on the other), not growing. Without flow control it grows by ~0.3 s/frame,
-        # past 2.4 s after 8 frames; the bound leaves room for a busy CI machine.
-        assert max(late) < 2.0, late
+        # past 2.4 s after 8 frames. A busy CI machine adds single spikes, not a trend: judged
+        # by the median and the slope.
+        slope = np.polyfit(np.arange(len(late)), late, 1)[0]
+        assert np.median(late) < 1.2 and slope < 0.15, (slope, late)
         assert client.get(f"/api/sessions/{sid}").json()["clients"] == 0  # all gone: free
         assert client.delete(f"/api/sessions/{sid}").status_code == 204
 

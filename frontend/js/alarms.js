@@ -10,6 +10,7 @@ export class Alarms {
     this.list = root.querySelector("#alarm-list");
     this.acknowledge = acknowledge; // (alarmId) => Promise
     this.current = [];
+    this.shownKey = ""; // the list as drawn (see update)
     this.ctx = null;
     this.timer = null;
     this.sounding = false;
@@ -37,7 +38,18 @@ export class Alarms {
         this._chime();
       }
     }
-    this.list.replaceChildren(...this.current.map((a) => this._item(a)));
+    // Rebuilt only when the list changes: a button re-created every frame could not be clicked
+    // (a message whose figures change is updated in place)
+    const key = JSON.stringify(this.current.map((a) => [a.id, a.severity, a.acknowledged]));
+    if (key !== this.shownKey) {
+      this.shownKey = key;
+      this.list.replaceChildren(...this.current.map((a) => this._item(a)));
+    } else {
+      this.current.forEach((a, i) => {
+        const text = this.list.children[i]?.querySelector(".alarm-text");
+        if (text && text.textContent !== a.message) text.textContent = a.message;
+      });
+    }
     this._sound(this.current.some((a) => a.severity === "alarm" && !a.acknowledged));
   }
 

@@ -1,5 +1,5 @@
 """The procedural textured port of the simulator: textures, faces and the builders of the marina
-and the container terminal, as drawn for a seed by ``variety`` (SPEC section 8).
+and the container terminal, as drawn for a seed by ``variety``.
 
 World = the scenario's local-level NED frame: the sea surface is the plane down = 0, the quay face
 the vertical plane north = 0 over ``quay_east_range``, land at north > 0, quay top at

@@ -1,4 +1,5 @@
-"""Scenario definitions for the berthing simulator (SPEC sections 2 and 8).
+"""Scenario definitions for the berthing simulator (sensors as in thesis table 15,
+``docs/references.md``).
 
 World frame of the simulator = the reference local-level frame (NED) at ``origin_llh``.
 The sea surface is the plane down = 0. The quay face is the vertical plane north = 0 between
@@ -7,7 +8,7 @@ The sea surface is the plane down = 0. The quay face is the vertical plane north
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 
 import numpy as np
@@ -174,4 +175,21 @@ LARGE_SHIP = Scenario(
     motion_centre_body=(60.0, 0.0),  # amidships, 60 m forward of the compass/IMU unit
 )
 
-SCENARIOS: dict[str, Scenario] = {s.name: s for s in (SMALL_BOAT, LARGE_SHIP)}
+# The simulator's counterpart of a real static receiver pair (benchmarks/calibration.py): the
+# small boat's antennas at rest (moored, no waves) for 5 minutes at the time of day of the real
+# static data (2024-06-24 08:20 GPST, the same sky), a small cheap video of the still view.
+STATIC = replace(
+    SMALL_BOAT,
+    name="static",
+    description="The small boat's four antennas at rest (moored at the pier, no waves) for "
+    "5 min: the simulated counterpart of a real static recording, for calibration.",
+    start=datetime(2024, 6, 24, 8, 20, 0),
+    duration_s=300.0,
+    path_keyframes=((0.0, -14.8, -9.9, 40.0), (300.0, -14.8, -9.9, 40.0)),
+    wave_roll_deg=0.0,
+    wave_pitch_deg=0.0,
+    wave_heave_m=0.0,
+    camera_size=(320, 200),
+)
+
+SCENARIOS: dict[str, Scenario] = {s.name: s for s in (SMALL_BOAT, LARGE_SHIP, STATIC)}

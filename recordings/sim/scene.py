@@ -1,4 +1,4 @@
-"""The camera renderer of the simulator (SPEC section 8): the seed's port (``port``) under the
+"""The camera renderer of the simulator: the seed's port (``port``) under the
 seed's light and water (``variety``), seen by a camera with a real lens.
 
 World = the scenario's local-level NED frame: the sea surface is the plane down = 0, the quay face

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import shutil
-import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from estimator.frames import ned_to_ecef
 from estimator.records import Calibration, GnssEpoch, Hull, ImuData, NavigationData
@@ -29,22 +28,23 @@ IMU_RATE_HZ = 100.0
 
 
 class Progress:
-    """One-line terminal progress for a named stage (stderr, so stdout stays clean)."""
+    """Terminal progress per named stage (tqdm on stderr, so stdout stays clean; off when
+    stderr is not a terminal, so logs get no carriage-return floods)."""
 
     def __init__(self, enabled: bool = True) -> None:
         self.enabled = enabled
-        self._t0 = time.monotonic()
+        self._bars: dict[str, tqdm] = {}
 
     def __call__(self, stage: str, done: int, total: int) -> None:
         if not self.enabled:
             return
-        frac = done / max(total, 1)
-        bar = "#" * int(30 * frac)
-        elapsed = time.monotonic() - self._t0
-        sys.stderr.write(f"\r{stage:<10} [{bar:<30}] {done}/{total}  {elapsed:5.1f} s")
+        bar = self._bars.get(stage)
+        if bar is None:
+            bar = self._bars[stage] = tqdm(total=total, desc=f"{stage:<6}", unit="step",
+                                           disable=None, leave=True)
+        bar.update(done - bar.n)
         if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+            bar.close()
 
 
 @dataclass
