@@ -42,6 +42,11 @@ ABOVE_WATER_M = 0.1  # structure points at most this far above the water plane a
 MIN_INLIER_GATE_M = 0.15
 CORRELATED_FRACTION = 0.002  # σ of the line shared by all its points, per metre of range
 MIN_POINT_SIGMA_M = 0.02  # a structure point's σ taken as at least this in the fit
+# A recording's own berth line is placed through the fused absolute position (standalone GNSS:
+# metre-level), not through what the camera sees.
+RECORDING_LINE_SIGMA_M = 2.0
+RECORDING_LINE_NOTE = ("the recording's berth line, placed through the standalone GNSS "
+                       "position (metre-level): set it on the quay for centimetres")
 WATER_PLANE_NOTE = ("no converged port structure near the clicks: the line is where the click "
                     "rays meet the water plane, to a few pixels' worth of metres (click the "
                     "quay's water line exactly, or wait for the quay's points to converge)")
@@ -290,7 +295,8 @@ class Berth:
         self.line: BerthLine | None = None
         if rec.hull.berth_line_ned is not None:
             self.line = BerthLine(np.asarray(rec.hull.berth_line_ned, float).reshape(2, 2),
-                                  "recording", frame="recording")
+                                  "recording", frame="recording", sigma_m=RECORDING_LINE_SIGMA_M,
+                                  note=RECORDING_LINE_NOTE)
 
     @staticmethod
     def _check(line_ne: np.ndarray) -> np.ndarray:

@@ -132,6 +132,7 @@ class Replayer:
         self._speed = speed  # None = as fast as possible
         self._playing = True
         self._seek_to: float | None = None  # gpst target of a pending seek command
+        self._seek_goal: float | None = None  # gpst target of the seek being run
         self._stop = False
         self._state = ReplayState.STARTING
         self._error: str | None = None
@@ -200,7 +201,9 @@ class Replayer:
                 "time_gpst": self._t,
                 "playing": self._playing,
                 "speed": self._speed,
-                "seek_target_gpst": self._seek_to,
+                # a pending seek, or the one running (the page shows its target and progress)
+                "seek_target_gpst": self._seek_to if self._seek_to is not None else
+                self._seek_goal if self._state == ReplayState.SEEKING else None,
                 "frames_processed": self._frames,
                 "lag_s": self._lag,
                 "behind_s": self._behind,
@@ -365,6 +368,7 @@ class Replayer:
                 self._state = ReplayState.STOPPED
             elif self._seek_to is not None:
                 goal, self._seek_to = self._seek_to, None
+                self._seek_goal = goal
                 restart = (goal < self._t or loop.engine is None
                            or self._state == ReplayState.ERROR)
                 self._error = None
