@@ -55,6 +55,7 @@ class TargetInput:
 
 PLAN_RANGE_FACTOR = 4.0  # plan points out to this many grid radii (small boat: 120 m)
 NEAR_BERTH_M = 6.0  # points this near the berth line are "near the berth"
+BEHIND_FACE_M = 3.0  # points farther behind the quay face (or berth line) are land
 ABOVE_WATER_M = 0.15  # a point less than this above the water plane is no obstacle
 QUAY_MAX_HEIGHT_M = 6.0  # points up to this above the water hide the water behind them
 OCCLUSION_BIN_DEG = 1.0
@@ -234,8 +235,9 @@ def clip_segments(a: np.ndarray, b: np.ndarray, keep: Any, piece: float = GRID_P
 
 def water_visibility(camera_ned: np.ndarray, points: np.ndarray, water_down: float,
                      berth_line_ne: np.ndarray | None) -> Any:
-    """Plan points (M,2) → mask of those whose water is visible: on the ship's side of the
-    berth line, and in front of the reconstructed quay: per direction from the camera
+    """Plan points (M,2) → mask of those whose water is visible (so: which are not land): on
+    the ship's side of the berth line, and in front of the reconstructed quay: per direction
+    from the camera
     (``_front_ranges``), the structure standing on the water (points up to QUAY_MAX_HEIGHT_M
     above it) hides the water behind it."""
     cam = np.asarray(camera_ned, dtype=float)[:2]
@@ -251,12 +253,13 @@ def water_visibility(camera_ned: np.ndarray, points: np.ndarray, water_down: flo
         normal = np.array([-d[1], d[0]]) / max(float(np.linalg.norm(d)), 1e-9)
         side = np.sign(float(np.dot(cam - line[0], normal))) or 1.0
 
-    def keep(ne: np.ndarray) -> np.ndarray:
-        rel = np.asarray(ne, dtype=float) - cam
+    def keep(ne: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(``margin`` > 0: points up to that far behind the quay face count too.)"""
+        rel = np.asarray(ne, dtype=float).reshape(-1, 2) - cam
         k = (np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) // OCCLUSION_BIN_DEG).astype(int) % bins
-        ok = np.linalg.norm(rel, axis=1) < front[k]
+        ok = np.linalg.norm(rel, axis=1) < front[k] + margin
         if normal is not None:
-            ok &= (np.asarray(ne, dtype=float) - line[0]) @ normal * side > 0.0
+            ok &= (rel + cam - line[0]) @ normal * side > -margin
         return ok
 
     return keep
@@ -309,7 +312,7 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
     }
 
     _structure_points(video, plan, projector, pose, (pts, sigma, ids), hull_ne, radius, water,
-                      berth_line_ne)
+                      berth_line_ne, keep(pts[:, :2], BEHIND_FACE_M))
     _predictions(video, plan, projector, pose, state, hull, config.prediction_seconds, water)
     target_out = _targets(plan, projector, pose, state, hull, targets)
     berth = _berth(plan, projector, pose, state, hull, berth_line_ne, water, berth_sigma)
@@ -332,11 +335,12 @@ def _structure_arrays(structure: tuple[np.ndarray, np.ndarray, np.ndarray] | Non
 def _structure_points(video: dict[str, Any], plan: dict[str, Any], projector: Projector,
                       pose: CameraPose, structure: tuple[np.ndarray, np.ndarray, np.ndarray],
                       hull_ne: np.ndarray, radius: float, water: float,
-                      berth_line_ne: np.ndarray | None) -> None:
+                      berth_line_ne: np.ndarray | None, seaward: np.ndarray) -> None:
     """Port structure: visible points on the video, nearby points in plan, coloured by the
     fixed band of their distance from the hull. ``obstacle`` marks what is drawn by default:
     converged, above the water plane (at or below it: reflections and noise, not something to
-    hit) and near the ship or the berth line."""
+    hit), near the ship or the berth line, and not on land well behind the quay face
+    (``seaward``: buildings and trees are no obstacles)."""
     pts, sigma, ids = structure
     dist = np.linalg.norm(pts - pose.position_ned, axis=1)
     # Points still converging (σ beyond a few % of the range): their distance is not to be
@@ -346,7 +350,7 @@ def _structure_points(video: dict[str, Any], plan: dict[str, Any], projector: Pr
     near = hull_dist <= radius
     if berth_line_ne is not None and len(pts):
         near |= _segment_distance(pts[:, :2], berth_line_ne) <= NEAR_BERTH_M
-    obstacle = trusted & (pts[:, 2] < water - ABOVE_WATER_M) & near
+    obstacle = trusted & (pts[:, 2] < water - ABOVE_WATER_M) & near & seaward
     band = distance_band(hull_dist)
     colors = np.array(BAND_COLORS)[band] if len(pts) else np.zeros(0, dtype=str)
     visible, uv = projector.project_points(pose, pts)

@@ -168,9 +168,16 @@ def test_water_grid_stops_at_the_quay_face():
     state = make_state()  # camera at north 3 m, looking north
     projector = Projector(CAMERA)
     wall = _quay_wall(15.0, np.arange(-20.0, 20.1, 0.5), np.array([0.3, 0.8, 1.3]))
+    tree = np.array([[22.0, 1.0, WATER - 4.0], [22.5, -1.0, WATER - 5.0]])  # on land
+    pts = np.vstack([wall, tree])
     overlay = build_overlay(state, CAMERA, HULL, projector,
-                            (wall, np.full(len(wall), 0.05), np.arange(len(wall))),
-                            config=OverlayConfig(water_down_m=WATER))
+                            (pts, np.full(len(pts), 0.05), np.arange(len(pts))),
+                            config=OverlayConfig(water_down_m=WATER, grid_radius_m=30.0))
+    # the quay face is an obstacle, the tree 7 m behind it (as near the ship) is not
+    points = overlay["video"]["points"]
+    kind = dict(zip(points["id"], points["obstacle"], strict=True))
+    assert kind[len(wall)] is False and kind[len(wall) + 1] is False
+    assert np.mean([kind[i] for i in range(len(wall)) if i in kind]) > 0.9
     nodes = np.array(overlay["video"]["grid"]["nodes"]["ned"])
     assert len(nodes) > 20 and nodes[:, 0].max() < 15.0  # no node behind the wall
     pose = camera_pose(state, CAMERA)
