@@ -214,6 +214,11 @@ def css_point(page, canvas_id: str, u: float, v: float) -> tuple[float, float]:
     return box["x"] + view["ox"] + u * view["scale"], box["y"] + view["oy"] + v * view["scale"]
 
 
+def range_digits(d: float) -> str:
+    """A distance as the page writes it: cm below 5 m, dm below 50 m, metres beyond."""
+    return f"{d:.{2 if abs(d) < 5 else 1 if abs(d) < 50 else 0}f}"
+
+
 def parse_color(css: str) -> tuple[int, int, int]:
     css = css.strip()
     if css.startswith("#"):
@@ -506,7 +511,7 @@ def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
     shown = page.evaluate("""() => [
       document.querySelector('#targets li[data-id] .tdist').textContent,
                                     window.berthing.frame.overlay.targets[0].distance_m]""")
-    assert shown[0] == f"{shown[1]:.1f} m"
+    assert shown[0] == f"{range_digits(shown[1])} m"
     shot(page, "04_target_frames_later")
 
     # a second target, then remove the first
@@ -554,8 +559,7 @@ def test_berth_line_from_two_clicks_gives_bow_and_stern(page) -> None:
     assert berth["bow_approach_mps"] > 0.2 and berth["stern_approach_mps"] > 0.2
     # at 50 m and beyond the distance is given to the metre, with its σ
     bow = page.locator("#bow-dist").inner_text().split("\n")[0]
-    want = berth["bow_distance_m"]
-    assert bow == (f"{want:.0f}m" if want >= 50 else f"{want:.1f}m"), bow
+    assert bow == f"{range_digits(berth['bow_distance_m'])}m", bow
     speed = page.locator("#bow-speed").inner_text().replace("\n", "")
     assert speed.startswith(f"▼{berth['bow_approach_mps'] * 100:.0f}cm/s"), speed
     # ~1 m/s towards the quay, but 50-60 m off: beyond the default approach-limit table

@@ -2,6 +2,7 @@
 // to image pixels for that very frame, so drawing is a scale + offset away: nothing here does
 // geometry, which keeps the picture and the lines in step by construction.
 
+import { fmtDistance } from "./format.js";
 import { colors } from "./theme.js";
 
 /** Letterbox the source image (w x h px) into the canvas's CSS box; sizes the backing store for
@@ -205,7 +206,7 @@ function drawTarget(ctx, [x, y], t, c, trusted, right) {
   ctx.strokeStyle = col;
   ring(ctx, x, y);
   const name = t.label || t.id;
-  const text = `${name}  ${t.distance_m.toFixed(1)} m`;
+  const text = `${name}  ${fmtDistance(t.distance_m)} m`;
   ctx.font = "700 17px system-ui, sans-serif";
   const w = ctx.measureText(text).width;
   // right of the mark, or left of it near the right edge of the picture

@@ -5,14 +5,9 @@
 // heading, speed over ground and rate of turn. The alarms themselves are the server's (one
 // alarm list with the integrity alarms): the panel only shows their level where the figure is.
 
-const KNOTS_PER_MPS = 3600 / 1852;
+import { fmtDistance } from "./format.js";
 
-/** A distance with the digits its range deserves: cm below 5 m, dm below 50 m, m beyond. */
-export function fmtDistance(d) {
-  if (d == null || !Number.isFinite(d)) return "–";
-  const a = Math.abs(d);
-  return d.toFixed(a < 5 ? 2 : a < 50 ? 1 : 0);
-}
+const KNOTS_PER_MPS = 3600 / 1852;
 
 function fmtSigma(s) {
   return s == null ? "" : `±${s.toFixed(s < 0.095 ? 2 : 1)}`;

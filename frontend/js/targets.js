@@ -1,6 +1,9 @@
 // Designated targets (click-to-measure): the list of points the officer clicked, each with its
 // distance from the camera (and its 1-σ) and from the hull, updated every frame from the stream, removable.
+// Distances with the digits their range deserves (format.js).
 // Rows are updated in place (not rebuilt) so a remove button stays clickable at 10 fps.
+
+import { fmtDistance } from "./format.js";
 
 export class Targets {
   /** @param {(id: string) => void} onRemove */
@@ -22,8 +25,8 @@ export class Targets {
       row.name.textContent = t.label || t.id;
       // ±1σ of the distance (from the 3-D point's covariance): how far to trust it
       const sigma = t.distance_sigma_m == null ? "" : `±${t.distance_sigma_m.toFixed(2)} m · `;
-      row.dist.textContent = `${t.distance_m.toFixed(1)} m`;
-      row.sub.textContent = `${sigma}hull ${t.hull_distance_m.toFixed(1)} m${t.visible ? "" : " · out of view"}`;
+      row.dist.textContent = `${fmtDistance(t.distance_m)} m`;
+      row.sub.textContent = `${sigma}hull ${fmtDistance(t.hull_distance_m)} m${t.visible ? "" : " · out of view"}`;
     }
     for (const [id, row] of this.rows) {
       if (!seen.has(id)) { row.li.remove(); this.rows.delete(id); }
