@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["ConfigError", "ImuInput", "CameraInput", "BridgeConfig", "LiveConfig",
-           "load_config", "config_text"]
+           "load_config", "load_bridge_config", "config_text"]
 
 SENTENCE_GROUPS = ("heading", "course", "position", "time")
 
@@ -182,25 +182,7 @@ def _parse(path: Path, data: dict[str, Any]) -> LiveConfig:
         raise ValueError(f"camera.latency_s = {camera.latency_s} is outside 0..5 s")
     cam_t.done()
 
-    bridge = BridgeConfig()
-    if "bridge" in data:
-        b = _Table(top.get("bridge", dict), "bridge")
-        udp = b.get("udp", str, "")
-        tcp = b.get("tcp", str, "")
-        rates = b.get("rates_hz", dict, {})
-        unknown = set(rates) - set(SENTENCE_GROUPS)
-        if unknown:
-            raise ValueError(f"bridge.rates_hz: unknown group(s) {sorted(unknown)} (known: "
-                             f"{', '.join(SENTENCE_GROUPS)})")
-        for key, value in rates.items():
-            if not isinstance(value, int | float) or not 0 <= value <= 50:
-                raise ValueError(f"bridge.rates_hz.{key} = {value!r} is not 0..50")
-        bridge = BridgeConfig(udp=_address(udp, "bridge.udp") if udp else None,
-                              source_id=b.get("source_id", str, "II0001"),
-                              tcp=_address(tcp, "bridge.tcp") if tcp else None,
-                              rates_hz={k: float(v) for k, v in rates.items()},
-                              leap_seconds=b.get("leap_seconds", int, 18))
-        b.done()
+    bridge = _bridge(top.get("bridge", dict)) if "bridge" in data else BridgeConfig()
     top.done()
     return LiveConfig(path=path, name=name, receivers=tuple(receivers), imu=imu, camera=camera,
                       calibration=calibration, hull=hull,
@@ -208,6 +190,43 @@ def _parse(path: Path, data: dict[str, Any]) -> LiveConfig:
                       record_dir=rel(record) if record else None,
                       nav_seed=rel(seed) if seed else None, stall_timeout_s=stall,
                       max_lag_s=lag, bridge=bridge)
+
+
+def _bridge(table: dict[str, Any]) -> BridgeConfig:
+    b = _Table(table, "bridge")
+    udp = b.get("udp", str, "")
+    tcp = b.get("tcp", str, "")
+    rates = b.get("rates_hz", dict, {})
+    unknown = set(rates) - set(SENTENCE_GROUPS)
+    if unknown:
+        raise ValueError(f"bridge.rates_hz: unknown group(s) {sorted(unknown)} (known: "
+                         f"{', '.join(SENTENCE_GROUPS)})")
+    for key, value in rates.items():
+        if not isinstance(value, int | float) or not 0 <= value <= 50:
+            raise ValueError(f"bridge.rates_hz.{key} = {value!r} is not 0..50")
+    out = BridgeConfig(udp=_address(udp, "bridge.udp") if udp else None,
+                       source_id=b.get("source_id", str, "II0001"),
+                       tcp=_address(tcp, "bridge.tcp") if tcp else None,
+                       rates_hz={k: float(v) for k, v in rates.items()},
+                       leap_seconds=b.get("leap_seconds", int, 18))
+    b.done()
+    if out.udp is None and out.tcp is None:
+        raise ValueError("[bridge] names no output: set udp and/or tcp")
+    return out
+
+
+def load_bridge_config(path: str | Path) -> BridgeConfig:
+    """The ``[bridge]`` table of a TOML file (for ``serve --bridge`` on replays)."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        if "bridge" not in data:
+            raise ValueError("no [bridge] table")
+        return _bridge(data["bridge"])
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except (tomllib.TOMLDecodeError, ValueError) as exc:
+        raise ConfigError(f"{path}: {exc}") from None
 
 
 def _q(value: str | Path) -> str:

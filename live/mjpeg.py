@@ -38,6 +38,7 @@ class MjpegServer:
         self._done = False
         self._stop = threading.Event()
         self.frames_sent = 0
+        self.clients = 0  # connections to the stream so far
         # A shared playback clock (the emulator's): frame time t is due at
         # clock_start + (t - clock_t0) / speed (monotonic s). None: from the first frame.
         self.clock_start: float | None = None
@@ -52,6 +53,7 @@ class MjpegServer:
                 if self.path.split("?")[0] != "/stream.mjpg":
                     self.send_error(404, "only /stream.mjpg here")
                     return
+                server.clients += 1
                 self.send_response(200)
                 self.send_header("Content-Type",
                                  f"multipart/x-mixed-replace; boundary={BOUNDARY}")
@@ -89,6 +91,8 @@ class MjpegServer:
 
     def _next_frame(self, last: int) -> tuple[int, float, bytes] | None:
         with self._cond:
+            if self._done and last == -1:
+                return None  # switched off: a client connecting now gets no stale frame
             while not self._stop.is_set() and not self._done and (
                     self._latest is None or self._latest[0] == last):
                 self._cond.wait(0.2)

@@ -128,6 +128,7 @@ class TimeAligner:
         self._interval = 1.0  # receivers' epoch interval, learned
         self._last_group_t: float | None = None
         self.stopped: set[str] = set()
+        self._undated: dict[str, list[Any]] = {}  # SFRBX received before any epoch
 
     # ------------------------------------------------------------------ producers
 
@@ -181,7 +182,9 @@ class TimeAligner:
                 self.stopped.discard(stream)
             return
         if isinstance(item, tuple) and item and item[0] == "sfrbx":
-            if self.apply_sfrbx is not None:
+            if item[2] is None:  # before the receiver's first epoch: dated by that epoch
+                self._undated.setdefault(stream, []).append(item[1])
+            elif self.apply_sfrbx is not None:
                 self.apply_sfrbx(item[1], item[2])
             return
         assert h is not None
@@ -191,6 +194,9 @@ class TimeAligner:
         if isinstance(item, ImuMessage):
             self._accept(stream, item.t, _IMU, h, lambda: self._imu.append((item, arrival)))
         elif isinstance(item, GnssEpoch):
+            for msg in self._undated.pop(stream, []):
+                if self.apply_sfrbx is not None:
+                    self.apply_sfrbx(msg, item.time)
             self.clock.observe(item.time, arrival)
             self._accept(stream, item.time, _GNSS, h, lambda: self._add_epoch(stream, item,
                                                                                arrival))
