@@ -19,7 +19,8 @@ that the decoders' assumptions hold: at each epoch first the ESF-RAW batch of th
 up to and including the epoch (the decoder dates its newest sample at the epoch, see
 :mod:`live.ubx_imu`: exact when the IMU samples fall on the epochs, as in the recordings),
 then RXM-RAWX; every ``sfrbx_period_s`` (30 s, the LNAV frame period) the SFRBX of the
-ephemerides in use come first, due ``SFRBX_LEAD_S`` before the epoch: an epoch's
+ephemerides in use come first, right after the previous epoch (``SFRBX_LEAD_S`` before
+the first one): an epoch's
 ephemerides are known when it is decoded (as for a receiver tracking for a while), and the
 RAWX is not held up behind them (its arrival times the camera, see ``live.source``).
 """
@@ -146,16 +147,19 @@ def receiver_messages(epochs: Sequence[GnssEpoch], nav: NavigationData, *,
     k_imu = 0
     tag0 = epochs[0].time if epochs else 0.0
     last_broadcast = -math.inf
+    last_due: float | None = None
     for epoch in epochs:
         t = epoch.time
         if t - last_broadcast >= sfrbx_period_s - 1e-6:
+            # right after the previous epoch (the stream stays in time order)
+            sfrbx_due = t - SFRBX_LEAD_S if last_due is None else last_due
             last_broadcast = t
             for sat in sorted(epoch.satellites):
                 eph = select_ephemeris(broadcast, sat, t)
                 if isinstance(eph, KeplerEphemeris):
                     for msg in sfrbx_messages(eph, t - 1.0, iono=iono if sat[0] == "G"
                                               else None):
-                        yield t - SFRBX_LEAD_S, msg
+                        yield sfrbx_due, msg
         if imu is not None:
             end = k_imu
             while end < len(imu.time) and imu.time[end] <= t + 1e-9:
@@ -167,3 +171,4 @@ def receiver_messages(epochs: Sequence[GnssEpoch], nav: NavigationData, *,
                                                               imu.accel[a:b])
             k_imu = end
         yield t, rawx.encode(epoch)
+        last_due = t

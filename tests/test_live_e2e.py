@@ -263,3 +263,19 @@ def test_recording_written_live_loads_and_replays(live_run):
     d = np.array([live["north"][k], live["east"][k]]) - np.asarray(last.position_ned)[:2]
     assert np.linalg.norm(d) < 0.05, f"the recorded berthing replays {np.linalg.norm(d):.3f} m " \
                                      f"away from the live trajectory at {last.time}"
+
+
+def test_example_config_is_valid(tmp_path: Path):
+    """The commented example in the repository parses (with its files in place)."""
+    from live.config import ConfigError, load_config
+
+    text = (ROOT / "live" / "example.toml").read_text()
+    (tmp_path / "calibration.json").write_text("{}")
+    (tmp_path / "hull.json").write_text("{}")
+    (tmp_path / "live.toml").write_text(text)
+    cfg = load_config(tmp_path / "live.toml")
+    assert cfg.imu.kind == "text" and len(cfg.receivers) == 4
+    assert cfg.bridge.udp == ("239.192.0.2", 60002) and cfg.bridge.rates_hz["heading"] == 10
+    (tmp_path / "live.toml").write_text(text.replace("latency_s", "latncy_s"))
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['latncy_s'\]"):
+        load_config(tmp_path / "live.toml")
