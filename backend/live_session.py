@@ -4,17 +4,17 @@ A live session differs from a replay only in where the sensor messages come from
 ``live.source.LiveSource`` (the devices of a ``live.config.LiveConfig``, merged in time order
 on GNSS time) instead of ``engine.messages.sensor_messages(recording)``. :class:`LiveRunner`
 takes the replayer's place in the session: it runs ``engine.driver.dispatch`` on every
-message in one thread, writes the recording as it goes (``live.recorder.LiveRecorder``) and
-hands each frame to the session. There is nothing to pause or seek in a live feed: those
-controls are refused (the recording written live replays with them).
-
-Bridge outputs (``live.bridge``) follow any session, live or replay: :class:`BridgeFeed` is a
-frame listener sending the fused heading, rate of turn, course, position and time, and the
-session's alarms, as NMEA over IEC 61162-450 UDP and/or TCP.
+message in one thread and hands each frame to the session; a second thread takes the messages
+from the source and writes the recording as they come (``live.recorder.LiveRecorder``), so the
+recording never waits for the engine. An engine slower than the sensors skips video frames
+(never IMU or GNSS) once more than ``MAX_QUEUED_FRAMES`` wait, and says how many. There is
+nothing to pause or seek in a live feed: those controls are refused (the recording written live
+replays with them).
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
@@ -50,6 +50,7 @@ from .sessions import Session, SessionManager
 log = logging.getLogger(__name__)
 
 FIRST_MESSAGE_TIMEOUT_S = 30.0
+MAX_QUEUED_FRAMES = 10  # 1 s of video at 10 fps: beyond, the engine skips frames to keep up
 
 
 class LiveRunner:
@@ -71,11 +72,21 @@ class LiveRunner:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._frame_times = np.empty(1024)
+        self._queue: collections.deque[Any] = collections.deque([first])  # for the engine
+        self._queued_frames = int(isinstance(first, FrameMessage))
+        self._arrived = threading.Condition(self._lock)
+        self.skipped_frames = 0  # frames the engine skipped to keep up with the sensors
+        self.recording_error: str | None = None
         self._thread = threading.Thread(target=self._run, name="live-session", daemon=True)
+        self._pump = threading.Thread(target=self._take_messages, name="live-recorder",
+                                      daemon=True)
 
     # ------------------------------------------------------------------ control
 
     def start(self, paused: bool = False) -> None:
+        if self.recorder is not None:
+            self.recorder.write(self._first, self.source.nav, {})
+        self._pump.start()
         self._thread.start()
 
     def play(self) -> bool:
@@ -95,8 +106,11 @@ class LiveRunner:
 
     def stop(self, timeout: float | None = 5.0) -> None:
         self._stop.set()
-        if self._thread.is_alive() and threading.current_thread() is not self._thread:
-            self._thread.join(timeout)
+        with self._arrived:
+            self._arrived.notify_all()
+        for thread in (self._thread, self._pump):
+            if thread.is_alive() and threading.current_thread() is not thread:
+                thread.join(timeout)
         self.source.close()
         if self.recorder is not None:
             try:
@@ -121,7 +135,8 @@ class LiveRunner:
 
     def live_status(self) -> dict[str, Any]:
         rec = None if self.recorder is None else self.recorder.status()
-        return {"inputs": self.source.health(), "recording": rec}
+        return {"inputs": self.source.health(), "recording": rec,
+                "skipped_frames": self.skipped_frames, "recording_error": self.recording_error}
 
     # ------------------------------------------------------------------ thread
 
@@ -135,23 +150,52 @@ class LiveRunner:
         with self._lock:
             self._state = ReplayState.PLAYING
         self._notify(ReplayState.PLAYING)
-        msg = self._first
-        while not self._stop.is_set():
+        while True:
+            msg = self._next_for_engine()
             if msg is None:
-                msg = self.source.next(0.2)
-                continue
+                return
             try:
                 self._process(engine, msg)
             except Exception as exc:  # noqa: BLE001 - the thread has nobody to raise to
                 log.exception("live session failed at t=%.3f", msg.t)
                 self._fail(f"live session failed at gpst {msg.t:.3f}: {exc!r}")
                 return
-            msg = None
+
+    def _take_messages(self) -> None:
+        """The sensors' messages as they come: into the recording, then queued for the engine."""
+        while not self._stop.is_set():
+            msg = self.source.next(0.2)
+            if msg is None:
+                continue
+            if self.recorder is not None:
+                try:
+                    self.recorder.write(msg, self.source.nav, {})
+                except OSError as exc:  # a full disk must not stop the navigation
+                    log.exception("writing the live recording failed")
+                    self.recording_error = f"writing the recording failed: {exc}"
+            with self._arrived:
+                self._queue.append(msg)
+                self._queued_frames += isinstance(msg, FrameMessage)
+                self._arrived.notify()
+
+    def _next_for_engine(self) -> Any:
+        """The next message for the engine (None once stopped); video frames are skipped while
+        more than ``MAX_QUEUED_FRAMES`` wait (the engine is behind the sensors)."""
+        with self._arrived:
+            while True:
+                while not self._queue and not self._stop.is_set():
+                    self._arrived.wait(0.2)
+                if self._stop.is_set():
+                    return None
+                msg = self._queue.popleft()
+                if not isinstance(msg, FrameMessage):
+                    return msg
+                self._queued_frames -= 1
+                if self._queued_frames < MAX_QUEUED_FRAMES:
+                    return msg
+                self.skipped_frames += 1
 
     def _process(self, engine: FusionEngine, msg: Any) -> None:
-        if self.recorder is not None:
-            slots = {}
-            self.recorder.write(msg, self.source.nav, slots)
         fused = dispatch(engine, msg)
         with self._lock:
             self._t = msg.t

@@ -271,6 +271,9 @@ class LiveStatus(BaseModel):
 
     inputs: list[LiveInput]
     recording: LiveRecordingStatus | None = Field(description="None: not recording")
+    skipped_frames: int = Field(0, ge=0, description="video frames the engine skipped to keep "
+                                                     "up with the sensors (it was behind)")
+    recording_error: str | None = Field(None, description="why the recording stopped, if it did")
 
 
 class LiveBrief(BaseModel):
