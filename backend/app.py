@@ -51,6 +51,9 @@ class Settings:
     announce: bool = False  # print the 3-D viewer's URL once it listens (the CLI does)
     integrity: IntegrityConfig | None = None  # alert limits (None: the engine's defaults)
     access: Access = field(default_factory=Access)  # tokens required on /api (none: open)
+    # Started with the server: a live session (``backend.live_session``) from this config
+    live_config: Any = None  # live.config.LiveConfig
+    bridge: Any = None  # live.config.BridgeConfig: NMEA from every replay session
 
 
 API_DESCRIPTION = (
@@ -93,6 +96,25 @@ def _lifespan(settings: Settings, manager: SessionManager
             if settings.announce:
                 print(f"3-D viewer: {view.url()}", flush=True)
         app.state.viewer = view
+        if settings.bridge is not None:
+            from .live_session import BridgeFeed
+
+            def follow(session: Session) -> None:  # every replay tells the bridge, as simulated
+                if not session.live:
+                    feed = BridgeFeed(settings.bridge, simulated=True)
+                    session.frame_listeners.append(feed)
+                    session.closers.append(feed.close)
+
+            manager.created_listeners.append(follow)
+        app.state.live_session = None
+        if settings.live_config is not None:
+            from .live_session import start_live_session
+
+            app.state.live_session = start_live_session(manager, settings.live_config,
+                                                        integrity=settings.integrity)
+            if settings.announce:
+                print(f"live session {app.state.live_session.id} "
+                      f"({settings.live_config.path})", flush=True)
         try:
             yield
         finally:

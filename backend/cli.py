@@ -55,6 +55,18 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from backend.access import CONTROL_ENV, access_for, is_loopback
     from backend.app import Settings, create_app
 
+    live_config = bridge = None
+    if args.live:
+        from live.config import load_config
+
+        live_config = load_config(args.live)
+        if args.recordings_dir is None and live_config.record_dir is not None:
+            live_config.record_dir.mkdir(parents=True, exist_ok=True)
+            args.recordings_dir = str(live_config.record_dir)  # its berthings replay here
+    if args.bridge:
+        from live.config import load_bridge_config
+
+        bridge = load_bridge_config(args.bridge)
     recording = _recording_arg(args.recording).resolve()
     if not (recording / "manifest.json").is_file():
         hint = ("make one with: berthing-aid simulate --scenario small-boat --seed 1 --out DIR"
@@ -78,7 +90,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = Settings(recordings_dir=recordings_dir, default_recording=recording,
                         viser_host=viser_host, viser_port=None if args.no_viewer
                         else args.viser_port, announce=True, access=access,
-                        integrity=integrity)
+                        integrity=integrity, live_config=live_config, bridge=bridge)
     shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
     if ":" in shown:
         shown = f"[{shown}]"
@@ -94,6 +106,41 @@ def cmd_serve(args: argparse.Namespace) -> int:
         print(f"warning: the 3-D viewer listens on {viser_host} without access control",
               file=sys.stderr)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="warning")
+    return 0
+
+
+def cmd_emulate(args: argparse.Namespace) -> int:
+    from live.config import BridgeConfig, _address
+    from live.emulator import Emulator
+    from recordings.format import load
+
+    if not 0.1 <= args.speed <= 10:
+        raise ValueError(f"--speed {args.speed} is outside 0.1..10")
+    bridge = None
+    if args.bridge_udp or args.bridge_tcp:
+        bridge = BridgeConfig(
+            udp=_address(args.bridge_udp, "--bridge-udp") if args.bridge_udp else None,
+            tcp=_address(args.bridge_tcp, "--bridge-tcp") if args.bridge_tcp else None)
+    rec = load(_recording_arg(args.recording))
+    emulator = Emulator(rec, imu=args.imu, speed=args.speed)
+    config = Path(args.write_config)
+    config.write_text(emulator.config_text(
+        record_dir=Path(args.record_dir) if args.record_dir else None, bridge=bridge),
+        encoding="utf-8")
+    emulator.start()
+    print(f"emulating {rec.path} ({rec.manifest.duration_s:g} s); config: {config}", flush=True)
+    print("waiting for a live session (berthing-aid serve --live "
+          f"{config}) to connect…", flush=True)
+    try:
+        while not emulator.started.wait(0.5):
+            pass
+        print("playing", flush=True)
+        emulator.wait()
+        print("end of the recording", flush=True)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emulator.stop()
     return 0
 
 
@@ -144,7 +191,30 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 0.5 m)")
     p.add_argument("--heading-alert-limit", type=float, default=1.0, metavar="DEG",
                    help="heading alert limit (default 1 deg)")
+    p.add_argument("--live", default=None, metavar="CONFIG.toml",
+                   help="also run a live session on the devices of this config (see "
+                        "live/example.toml); the page opens it")
+    p.add_argument("--bridge", default=None, metavar="FILE.toml",
+                   help="send NMEA of every replay session to the [bridge] outputs of this "
+                        "file (mode 'simulated'); a live session uses its config's [bridge]")
     p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("emulate", help="play a recording on loopback as the live devices "
+                                       "(4 UBX TCP streams, the IMU, an HTTP MJPEG camera)")
+    p.add_argument("recording", nargs="?", help="recording directory (default: bundled)")
+    p.add_argument("--write-config", required=True, metavar="FILE",
+                   help="write the live config pointing at the emulator here")
+    p.add_argument("--record-dir", default=None,
+                   help="record_dir of the written config (default: none, not recorded)")
+    p.add_argument("--imu", choices=("text", "esf"), default="text",
+                   help="IMU as the text protocol over UDP (default) or UBX ESF-RAW in "
+                        "receiver 1's stream")
+    p.add_argument("--bridge-udp", default=None, metavar="HOST:PORT",
+                   help="[bridge] udp of the written config")
+    p.add_argument("--bridge-tcp", default=None, metavar="HOST:PORT",
+                   help="[bridge] tcp of the written config")
+    p.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1)")
+    p.set_defaults(func=cmd_emulate)
 
     from evaluation.cli import add_parsers
 

@@ -41,6 +41,7 @@ class History:
         with self.lock:
             self._times.append(t)
             self._states.append(state)
+            self.end_gpst = max(self.end_gpst, t)  # a live session's span grows
 
     def rewind(self, t: float | None) -> None:
         """Forget the states after gpst ``t`` (all when None)."""

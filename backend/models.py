@@ -256,6 +256,40 @@ class WaterLevelModel(BaseModel):
     source: str = Field(description="request | manifest | reference | unknown…")
 
 
+class LiveInput(BaseModel):
+    name: str = Field(description="imu, camera, rx1 … rx4")
+    state: str = Field(description="connecting | streaming | lagging | stopped")
+    received: int
+    late: int = Field(description="messages dropped: they came after the merge passed them")
+    last_gpst: float | None
+    error: str | None
+
+
+class LiveRecordingStatus(BaseModel):
+    directory: str
+    recording: bool
+    frames: int
+    imu_samples: int
+    epochs: list[int] = Field(description="observation epochs written per receiver")
+    duration_s: float
+
+
+class LiveStatus(BaseModel):
+    """A live session's inputs and the recording it writes."""
+
+    inputs: list[LiveInput]
+    recording: LiveRecordingStatus | None = Field(description="None: not recording")
+    skipped_frames: int = Field(0, ge=0, description="video frames the engine skipped to keep "
+                                                     "up with the sensors (it was behind)")
+    recording_error: str | None = Field(None, description="why the recording stopped, if it did")
+
+
+class LiveBrief(BaseModel):
+    recording: bool = Field(description="the record indicator")
+    record_s: float | None = Field(description="seconds recorded")
+    inputs_down: list[str] = Field(description="inputs not streaming")
+
+
 class SessionStatus(BaseModel):
     id: str
     recording: str
@@ -281,6 +315,8 @@ class SessionStatus(BaseModel):
     has_reference: bool
     water_level: WaterLevelModel
     created_at: float
+    live: LiveStatus | None = Field(default=None, description="live session: its inputs and "
+                                                              "recording; None for a replay")
 
 
 class SessionList(BaseModel):
@@ -656,3 +692,5 @@ class StreamFrameHeader(BaseModel):
     status: FusionStatusModel | None
     overlay: Overlay | None
     alarms: list[Alarm] = Field(default_factory=list, description="active alarms")
+    live: LiveBrief | None = Field(default=None, description="live session: record indicator "
+                                                             "and inputs down; None in replay")

@@ -87,7 +87,11 @@ class Session:
                  speed: float | None, prediction_seconds: int = 5,
                  checkpoint_interval_s: float | None = 10.0,
                  body_height_m: float | None = None,
-                 integrity: IntegrityConfig | None = None) -> None:
+                 integrity: IntegrityConfig | None = None,
+                 runner: Callable[[Callable[[], FusionEngine], Session], Any] | None = None
+                 ) -> None:
+        """``runner``: what feeds the engine instead of a ``Replayer`` of ``rec`` (a live
+        source: ``backend.live_session``), made from the engine factory and the session."""
         self.id = session_id
         self.name = name
         self.rec = rec
@@ -100,7 +104,7 @@ class Session:
         self.overlay_config = OverlayConfig(prediction_seconds=prediction_seconds,
                                             water_down_m=self.water.down_m)
         self.history = History(rec, self.lock)
-        self.start_gpst, self.end_gpst = self.history.start_gpst, self.history.end_gpst
+        self.start_gpst = self.history.start_gpst
         self.targets = TargetBook(rec, self.projector, self.lock)
         self.berth = Berth(rec, self.projector, self.water.down_m if self.water.known else None,
                            self.history.origin_in_recording, self.lock)
@@ -116,16 +120,22 @@ class Session:
         self._current_frame: tuple[FrameResult, Any | None] | None = None
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
+        self.closers: list[Callable[[], None]] = []  # called when the session closes
         engine_options = dict(options)
         if integrity is not None:
             engine_options["integrity"] = integrity
         if self.water.known:
             # The landmark refinement drops points on or below the water (reflections).
             engine_options.setdefault("body_origin_height_m", self.water.down_m)
-        self.replayer = Replayer(
-            rec, lambda: engine_factory(rec.calibration, rec.nav, dict(engine_options)), self,
-            speed=speed, checkpoint_interval_s=checkpoint_interval_s,
+        make_engine = lambda: engine_factory(rec.calibration, rec.nav, dict(engine_options))
+        self.live = runner is not None
+        self.replayer = runner(make_engine, self) if runner is not None else Replayer(
+            rec, make_engine, self, speed=speed, checkpoint_interval_s=checkpoint_interval_s,
             shared=(rec, rec.calibration, rec.nav))
+
+    @property
+    def end_gpst(self) -> float:
+        return self.history.end_gpst
 
     # --------------------------------------------------------------------- life cycle
 
@@ -148,6 +158,16 @@ class Session:
             self.targets.clear()
         for sub in subscribers:
             sub.end("the session was deleted")
+        for close in self.closers:
+            try:
+                close()
+            except Exception:
+                log.exception("closing what followed the session failed")
+        self.closers.clear()
+
+    def live_status(self) -> dict[str, Any] | None:
+        """Inputs and recording of a live session (None for a replay)."""
+        return self.replayer.live_status() if self.live else None
 
     # ------------------------------------------------------------------ FrameSink (replay)
 
@@ -213,7 +233,7 @@ class Session:
     def unsubscribe(self, subscriber: Subscriber) -> None:
         with self.lock:
             self._subscribers.discard(subscriber)
-            if not self._subscribers:
+            if not self._subscribers and not self.live:  # the ship's session stays
                 self.unwatched_since = time.monotonic()
 
     def redraw_if_paused(self) -> None:
@@ -263,6 +283,7 @@ class Session:
                        "behind_s": round(replay["behind_s"], 3)},
             "processed_at": result.processed_wall,
             "alarms": self.alarms.active(),
+            "live": _live_brief(self.live_status()),
         }
         if state is None:
             header.update(pose=None, status=None, overlay=None)
@@ -341,6 +362,7 @@ class Session:
             "has_reference": self.rec.reference is not None,
             "water_level": {"down_m": self.water.down_m, "source": self.water.source},
             "created_at": self.created,
+            "live": self.live_status(),
         }
 
     def timing(self) -> dict[str, Any]:
@@ -445,6 +467,17 @@ class Session:
         self.redraw_if_paused()
 
 
+def _live_brief(live: dict[str, Any] | None) -> dict[str, Any] | None:
+    """What every frame of a live session carries: the record indicator and the inputs that
+    are not streaming."""
+    if live is None:
+        return None
+    rec = live["recording"]
+    return {"recording": bool(rec and rec["recording"]),
+            "record_s": None if not rec else rec["duration_s"],
+            "inputs_down": [h["name"] for h in live["inputs"] if h["state"] != "streaming"]}
+
+
 # ----------------------------------------------------------------------------- manager
 
 
@@ -505,6 +538,22 @@ class SessionManager:
         except BaseException:
             self.delete(session.id)
             raise
+        return session
+
+    def add(self, rec: Recording, name: str, runner: Callable[..., Any],
+            options: dict[str, Any], prediction_seconds: int = 10,
+            integrity: IntegrityConfig | None = None) -> Session:
+        """Register and start a session fed by ``runner`` (a live one), outside the limit:
+        it is the ship's own and is never reclaimed."""
+        session = Session(uuid.uuid4().hex[:12], name, rec, self.engine_factory, options,
+                          1.0, prediction_seconds, None, None, integrity or self.integrity,
+                          runner=runner)
+        session.unwatched_since = None  # never reclaimed as abandoned
+        with self._lock:
+            self._sessions[session.id] = session
+        for listener in self.created_listeners:
+            listener(session)
+        session.start()
         return session
 
     def _take_abandoned(self) -> Session | None:

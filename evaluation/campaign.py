@@ -248,8 +248,9 @@ def _submit(client: Any, todo: list[Task], spec: CampaignSpec, out: Path, cache:
         if t.recording_key not in recordings:
             recordings[t.recording_key] = client.submit(
                 make_recording, t, str(cache), key=f"simulate-{t.recording_key}", pure=False)
+        # evaluations before further simulations: results come in as early as they can
         futures[client.submit(run_task, t, recordings[t.recording_key], str(out), spec,
-                              key=f"evaluate-{t.key}", pure=False)] = t
+                              key=f"evaluate-{t.key}", pure=False, priority=1)] = t
     failed = 0
     with tqdm(total=len(futures), desc="campaign", unit="task", disable=not show_progress,
               dynamic_ncols=True) as bar:

@@ -51,30 +51,35 @@ from .runs import Collect, FusionRun, RunSet
 from .scoring import Errors, run_errors, trajectory_scores
 from .structure import StructurePlot, structure_scores
 from .subsets import choose_subsets
-from .tracking import evaluate_tracking
+from .tracking import EVAL_METHODS, evaluate_tracking
 from .truth import DEFAULT_CLICK_TIMES_S, default_clicks
 
 INIT_S = 30.0  # thesis: 30 s of initialisation with carrier phase, then the window
 SUBSET_SIZES = (5, 4, 3, 2, 1, 0)
 CLICK_END_MARGIN_S = 5.0  # clicks at least this long before the end of the replay
 MAIN = "INS+VO+CPP"
+METHODS = ("INS", "VO", "INS+VO", MAIN)  # table 17
 
 
 @dataclass
 class ReportOptions:
-    """What to run: ``end_s`` replays only the first seconds; ``subset_sizes`` (tables
-    18–20), ``clock_drift`` (table 21), ``single_satellites`` (how many of the best five for
-    fig. 14) and ``without_cpp`` (the literal ``use_cpp=False`` runs) trim the work for a
-    quick run (the keys stay, empty); ``tracking`` adds the designated-target and landmark
-    evaluations; ``fusion``: the product's options (a campaign's parameter sweep)."""
+    """What to run: ``end_s`` replays only the first seconds; ``methods`` (table 17's, the
+    INS+VO+CPP run always), ``subset_sizes`` (tables 18–20), ``clock_drift`` (table 21),
+    ``single_satellites`` (how many of the best five for fig. 14) and ``without_cpp`` (the
+    literal ``use_cpp=False`` runs) trim the work for a quick run (the keys stay, empty);
+    ``tracking`` adds the designated-target and landmark evaluations (``tracking_methods``:
+    the image trackers followed, ``evaluation.tracking.EVAL_METHODS``); ``fusion``: the
+    product's options (a campaign's parameter sweep)."""
 
     init_s: float = INIT_S
     end_s: float | None = None
+    methods: Sequence[str] = METHODS
     subset_sizes: Sequence[int] = SUBSET_SIZES
     clock_drift: bool = True
     single_satellites: int = 5
     without_cpp: bool = True
     tracking: bool = True
+    tracking_methods: Sequence[str] = EVAL_METHODS
     plots_dir: str | Path | None = None
     fusion: dict = field(default_factory=dict)
 
@@ -112,7 +117,7 @@ def evaluate(rec: Recording, opt: ReportOptions, progress: Callable[[str], None]
     if rec.reference is None:
         raise ValueError(f"{rec.manifest.name}: no reference trajectory to score against "
                          "(the report needs reference/trajectory.csv)")
-    rs = _run_set(rec, opt, progress)
+    rs = run_set(rec, opt, progress)
     t0 = rs.gnss[0].t + opt.init_s
     if t0 >= rs.end - 1.0:
         raise ValueError(f"{rec.manifest.name}: {rs.duration:g} s replayed leaves no window "
@@ -144,7 +149,7 @@ def evaluate(rec: Recording, opt: ReportOptions, progress: Callable[[str], None]
     return ev
 
 
-def _run_set(rec: Recording, opt: ReportOptions, progress: Callable[[str], None]) -> RunSet:
+def run_set(rec: Recording, opt: ReportOptions, progress: Callable[[str], None]) -> RunSet:
     """The span to replay and the VO run once over its video."""
     start = float(rec.manifest.start_gpst)
     end = start + (float(rec.manifest.duration_s) if opt.end_s is None else opt.end_s)
@@ -171,7 +176,7 @@ def _scored_window(main: FusionRun, t0: float, rs: RunSet) -> list[float]:
     return [float(main.time[scored][0] - rs.start), float(main.time[scored][-1] - rs.start)]
 
 
-def _lean(opt: ReportOptions, init_s: float, **kw: object) -> FusionOptions:
+def lean_options(opt: ReportOptions, init_s: float, **kw: object) -> FusionOptions:
     """Options of a run scored on the trajectory only: without the port-structure refinement
     (a consumer of the fused poses, not an input of the EKF: ~1 ms per frame)."""
     return FusionOptions(keep_after_s=init_s, landmarks=None, **{**opt.fusion, **kw})
@@ -187,15 +192,21 @@ def _score(ev: Evaluated, name: str, run: FusionRun, t0: float, n_window: int
 def _table17(ev: Evaluated, opt: ReportOptions, t0: float, n_window: int) -> None:
     rs, report = ev.rs, ev.report
     main = rs.runs[MAIN]
-    runs = {"INS": rs.fuse("INS", _lean(opt, opt.init_s, use_vo=False, satellites_keep=[])),
-            "INS+VO": rs.fuse("INS+VO", _lean(opt, opt.init_s, satellites_keep=[])),
-            "VO": None, MAIN: main}
-    vo_run, vo_scores = vo_alone(rs, main, t0)
-    runs["VO"] = vo_run
-    ev.runs = runs  # type: ignore[assignment]
-    for name in ("INS", "VO", "INS+VO", MAIN):
-        report.methods[name] = _score(ev, name, runs[name], t0, n_window)  # type: ignore[arg-type]
-    report.methods["VO"] = VoAloneScores(**vars(report.methods["VO"]), **vo_scores)
+    runs: dict[str, FusionRun] = {MAIN: main}
+    if "INS" in opt.methods:
+        runs["INS"] = rs.fuse("INS", lean_options(opt, opt.init_s, use_vo=False,
+                                                  satellites_keep=[]))
+    if "INS+VO" in opt.methods:
+        runs["INS+VO"] = rs.fuse("INS+VO", lean_options(opt, opt.init_s, satellites_keep=[]))
+    vo_scores: dict[str, object] = {}
+    if "VO" in opt.methods:
+        runs["VO"], vo_scores = vo_alone(rs, main, t0)
+    ev.runs = runs = {n: runs[n] for n in METHODS if n in runs}
+    for name in METHODS:
+        if name in runs:
+            report.methods[name] = _score(ev, name, runs[name], t0, n_window)
+    if "VO" in runs:
+        report.methods["VO"] = VoAloneScores(**vars(report.methods["VO"]), **vo_scores)
     if opt.without_cpp:
         lean = {"landmarks": None, **opt.fusion}
         lit = {"INS": rs.fuse("INS (use_cpp=False)",
@@ -217,7 +228,8 @@ def _tables18_21(ev: Evaluated, opt: ReportOptions, t0: float, n_window: int) ->
         figures = {}
         for mode, tight in (("loose", False), ("tight", True)):
             run = rs.fuse(f"{n} sat {mode} {','.join(sats)}",
-                          _lean(opt, opt.init_s, satellites_keep=sats, tightly_coupled=tight))
+                          lean_options(opt, opt.init_s, satellites_keep=sats,
+                                       tightly_coupled=tight))
             sc = trajectory_scores(run_errors(run, rs.rec.reference, rs.start, t0), n_window)
             figures[mode] = SubsetFigures(sc.velocity_std_mps, sc.horizontal_std_m,
                                           sc.heading_std_deg, sc.horizontal_max_m,
@@ -231,7 +243,8 @@ def _tables18_21(ev: Evaluated, opt: ReportOptions, t0: float, n_window: int) ->
         figures = {}
         for name, common in (("common", True), ("separate", False)):
             run = rs.fuse(f"one satellite per receiver, {name} clock drift",
-                          _lean(opt, opt.init_s, per_receiver_sats=per, common_clock=common))
+                          lean_options(opt, opt.init_s, per_receiver_sats=per,
+                                       common_clock=common))
             sc = _score(ev, f"per-receiver sats, {name} clock", run, t0, n_window)
             figures[name] = ClockFigures(sc.horizontal_std_m, sc.horizontal_max_m,
                                          sc.velocity_std_mps, sc.heading_std_deg,
@@ -239,7 +252,8 @@ def _tables18_21(ev: Evaluated, opt: ReportOptions, t0: float, n_window: int) ->
         report.clock_drift = ClockDrift({str(i): s for i, s in enumerate(sats)}, **figures)
     five = chosen[max(chosen)][:max(opt.single_satellites, 0)]
     if five:
-        pipeline = {s: rs.fuse(f"1 sat tight {s}", _lean(opt, opt.init_s, satellites_keep=[s]))
+        pipeline = {s: rs.fuse(f"1 sat tight {s}",
+                               lean_options(opt, opt.init_s, satellites_keep=[s]))
                     for s in five}
         report.single_satellite_heading = OneSatelliteHeading(
             rs, rs.runs[MAIN], t0).report(five, pipeline)
@@ -259,7 +273,7 @@ def _targets_and_landmarks(ev: Evaluated, opt: ReportOptions, full: FusionOption
     first = min((c.frame for c in clicks), default=None)
     run = rs.fuse(f"{MAIN} (targets, landmarks)", full,
                   Collect(structures_from=first, landmarks=True))
-    ev.report.tracking = evaluate_tracking(rec, run, clicks)
+    ev.report.tracking = evaluate_tracking(rec, run, clicks, methods=opt.tracking_methods)
     ev.report.landmarks = evaluate_landmarks(rec, run)
 
 

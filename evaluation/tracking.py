@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -87,9 +87,12 @@ class _Followed:
 
 
 def evaluate_tracking(rec: Recording, run: FusionRun, clicks: list[Click],
-                      progress: Callable[[str], None] | None = None) -> TrackingReport:
+                      progress: Callable[[str], None] | None = None,
+                      methods: Sequence[str] = EVAL_METHODS) -> TrackingReport:
     """Seed 002 fig. 7 on a recording (module docstring). ``run`` has the structure after
-    every frame from the first click on (``runs.Collect(structures_from=...)``)."""
+    every frame from the first click on (``runs.Collect(structures_from=...)``); ``methods``
+    (of ``EVAL_METHODS``) trims the ablations."""
+    methods = tuple(m for m in EVAL_METHODS if m in methods)
     if rec.reference is None or rec.scene_points is None:
         return TrackingReport(reason="no reference trajectory or no scene points to score "
                                      "against")
@@ -98,20 +101,21 @@ def evaluate_tracking(rec: Recording, run: FusionRun, clicks: list[Click],
                                      " m from the camera in view at the click times")
     truth = true_cameras(rec, run.time, run.origin_time)
     projector = Projector(rec.calibration.camera)
-    followed = [_designated(rec, run, truth, projector, i, c) for i, c in enumerate(clicks)]
+    followed = [_designated(rec, run, truth, projector, i, c, methods)
+                for i, c in enumerate(clicks)]
     active = [f for f in followed if f.result.skipped is None]
     if not active:
         return TrackingReport(clicks=[f.result for f in followed],
                               reason="no click could be scored")
     wall = _follow(rec, run, truth, projector, active, progress)
-    methods = {m: _method_scores([f.rows[m] for f in active], sum(f.seconds[m] for f in active))
-               for m in EVAL_METHODS}
+    scores = {m: _method_scores([f.rows[m] for f in active], sum(f.seconds[m] for f in active))
+              for m in methods}
     for f in active:
         f.result.per_method = {m: _method_scores([f.rows[m]], f.seconds[m], brief=True)
-                               for m in EVAL_METHODS}
-    fixed = [r for f in active for r in f.rows[DESIGNATED]]
+                               for m in methods}
+    fixed = [r for f in active for r in f.rows[methods[0]]] if methods else []
     return TrackingReport(
-        clicks=[f.result for f in followed], methods=methods,
+        clicks=[f.result for f in followed], methods=scores,
         fixed_point_distance_m=_distance_scores(np.array([r.fixed_error for r in fixed]),
                                                 np.array([r.true_range for r in fixed])),
         loss_px=LOSS_PX, distance_tolerance=DISTANCE_TOLERANCE,
@@ -119,7 +123,7 @@ def evaluate_tracking(rec: Recording, run: FusionRun, clicks: list[Click],
 
 
 def _designated(rec: Recording, run: FusionRun, truth: Truth, projector: Projector, i: int,
-                click: Click) -> _Followed:
+                click: Click, methods: Sequence[str]) -> _Followed:
     """The click designated as the server designates it, at its frame."""
     start = float(rec.manifest.start_gpst)
     k = click.frame
@@ -143,8 +147,8 @@ def _designated(rec: Recording, run: FusionRun, truth: Truth, projector: Project
         return _Followed(result, -1, None)
     result.point, result.method, result.support_points = j, des.method, len(des.anchor_ids)
     result.true_point_ned = np.asarray(rec.scene_points[j], float).tolist()
-    return _Followed(result, j, des, rows={m: [] for m in EVAL_METHODS},
-                     seconds={m: 0.0 for m in EVAL_METHODS})
+    return _Followed(result, j, des, rows={m: [] for m in methods},
+                     seconds={m: 0.0 for m in methods})
 
 
 def _follow(rec: Recording, run: FusionRun, truth: Truth, projector: Projector,
@@ -177,7 +181,7 @@ def _follow(rec: Recording, run: FusionRun, truth: Truth, projector: Projector,
 def _start(f: _Followed, projector: Projector, image: np.ndarray, view: object, k: int,
            earlier: list[tuple[float, np.ndarray]], run: FusionRun) -> None:
     uv = tuple(f.result.uv)
-    for m in EVAL_METHODS:
+    for m in f.rows:
         t0 = time.perf_counter()
         if m == DESIGNATED:
             f.trackers[m] = FollowedTarget(projector, f.designation, image, uv,  # type: ignore
@@ -202,7 +206,7 @@ def _step(f: _Followed, rec: Recording, run: FusionRun, truth: Truth, image: np.
     d_true = float(np.linalg.norm(Xt - truth.position[k]))
     d_fixed = float(np.linalg.norm(f.designation.position_ned  # type: ignore[attr-defined]
                                    - view.position_ned))  # type: ignore[attr-defined]
-    for m in EVAL_METHODS:
+    for m in f.rows:
         obj = f.trackers.get(m)
         if obj is None:
             continue

@@ -26,7 +26,7 @@ import ipaddress
 import socket
 import threading
 from collections.abc import Iterable, Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 from .nmea import Alert, BridgeState, SentenceMaker
 
@@ -38,6 +38,8 @@ __all__ = [
     "NmeaTcpServer",
     "NmeaOutput",
     "SentenceSink",
+    "bridge_state",
+    "bridge_alerts",
 ]
 
 IEC450_HEADER = b"UdPbC\x00"
@@ -233,3 +235,44 @@ class NmeaOutput:
     def _send(self, sentences: list[bytes]) -> None:
         for sink in self.sinks:
             sink.send(sentences)
+
+
+def bridge_state(state: Any, *, simulated: bool = False) -> BridgeState:
+    """What the bridge is told of a fused state (``estimator.options.FusedState``).
+
+    Mode: not trusted by the integrity layer → ``invalid`` (heading fields empty, GGA quality
+    0); trusted while coasting on the INS → ``dead-reckoning``; trusted → ``gnss`` (the
+    absolute position is standalone-GNSS anchored: quality 1, never claimed RTK), or
+    ``simulated`` for a replayed recording."""
+    integrity = getattr(state.status, "integrity", None)
+    if integrity is None or not integrity.trusted:
+        mode = "invalid"
+    elif simulated:
+        mode = "simulated"
+    elif integrity.mode == "coasting":
+        mode = "dead-reckoning"
+    else:
+        mode = "gnss"
+    return BridgeState(
+        time=float(state.time),
+        llh_deg=tuple(float(x) for x in state.llh_deg),  # type: ignore[arg-type]
+        velocity_ned=tuple(float(x) for x in state.velocity_ned),  # type: ignore[arg-type]
+        euler=tuple(float(x) for x in state.euler),  # type: ignore[arg-type]
+        rate_of_turn=float(state.rate_of_turn), mode=mode,
+        satellites=int(getattr(state.status, "satellites", 0) or 0))
+
+
+_PRIORITIES = {"alarm": "alarm", "warning": "warning", "caution": "caution"}
+
+
+def bridge_alerts(alarms: Iterable[dict[str, Any]], start_gpst: float) -> list[Alert]:
+    """A session's alarms (``backend.alarms.AlarmEntry.as_dict``: id ``A<n>``, severity,
+    message, since_s, active, acknowledged) as bridge alerts, alert id = n (1..999)."""
+    out = []
+    for a in alarms:
+        n = int(str(a["id"]).lstrip("A") or 0)
+        out.append(Alert(alert_id=(n - 1) % 999 + 1, text=str(a["message"]),
+                         priority=_PRIORITIES.get(a["severity"], "warning"),
+                         active=bool(a["active"]), acknowledged=bool(a["acknowledged"]),
+                         changed=start_gpst + float(a["since_s"])))
+    return out

@@ -38,6 +38,11 @@ class MjpegServer:
         self._done = False
         self._stop = threading.Event()
         self.frames_sent = 0
+        self.clients = 0  # connections to the stream so far
+        # A shared playback clock (the emulator's): frame time t is due at
+        # clock_start + (t - clock_t0) / speed (monotonic s). None: from the first frame.
+        self.clock_start: float | None = None
+        self.clock_t0: float | None = None
         server = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -48,6 +53,7 @@ class MjpegServer:
                 if self.path.split("?")[0] != "/stream.mjpg":
                     self.send_error(404, "only /stream.mjpg here")
                     return
+                server.clients += 1
                 self.send_response(200)
                 self.send_header("Content-Type",
                                  f"multipart/x-mixed-replace; boundary={BOUNDARY}")
@@ -85,6 +91,8 @@ class MjpegServer:
 
     def _next_frame(self, last: int) -> tuple[int, float, bytes] | None:
         with self._cond:
+            if self._done and last == -1:
+                return None  # switched off: a client connecting now gets no stale frame
             while not self._stop.is_set() and not self._done and (
                     self._latest is None or self._latest[0] == last):
                 self._cond.wait(0.2)
@@ -94,17 +102,20 @@ class MjpegServer:
             return self._latest
 
     def _play(self) -> None:
-        start = time.monotonic()
+        start = self.clock_start
         t0: float | None = None
         for index, (t, image) in enumerate(self._frames()):
             if t0 is None:
-                t0 = t
-            wait = start + (t - t0) / self.speed - time.monotonic()
-            if self._stop.wait(max(0.0, wait)):
-                return
+                t0 = self.clock_t0 if self.clock_t0 is not None else t
+            # encoded before its time comes: a camera sends a frame as it is captured
             ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
             if not ok:
                 raise RuntimeError(f"cannot JPEG-encode frame {index}")
+            if start is None:  # the clock starts with the first frame ready to go
+                start = time.monotonic()
+            wait = start + (t - t0) / self.speed - time.monotonic()
+            if self._stop.wait(max(0.0, wait)):
+                return
             with self._cond:
                 self._latest = (index, t, jpeg.tobytes())
                 self._cond.notify_all()

@@ -18,8 +18,11 @@ does not hold is synthesised so that decoding gives the recording back:
 that the decoders' assumptions hold: at each epoch first the ESF-RAW batch of the IMU samples
 up to and including the epoch (the decoder dates its newest sample at the epoch, see
 :mod:`live.ubx_imu`: exact when the IMU samples fall on the epochs, as in the recordings),
-then RXM-RAWX, then the SFRBX of the ephemerides in use, rebroadcast every
-``sfrbx_period_s`` (30 s, the LNAV frame period).
+then RXM-RAWX; every ``sfrbx_period_s`` (30 s, the LNAV frame period) the SFRBX of the
+ephemerides in use come first, right after the previous epoch (``SFRBX_LEAD_S`` before
+the first one): an epoch's
+ephemerides are known when it is decoded (as for a receiver tracking for a while), and the
+RAWX is not held up behind them (its arrival times the camera, see ``live.source``).
 """
 
 from __future__ import annotations
@@ -119,6 +122,7 @@ def esf_raw_message(tags: Sequence[int], gyro: Sequence[Sequence[float]],
                       payload=esf_raw_payload(tags, gyro, accel)).serialize()
 
 
+SFRBX_LEAD_S = 0.5  # the subframes of an epoch's ephemerides are sent this long before it
 _ESF_BATCH = 10  # samples per ESF-RAW message (as a u-blox receiver at 100 Hz sends them)
 
 
@@ -143,8 +147,19 @@ def receiver_messages(epochs: Sequence[GnssEpoch], nav: NavigationData, *,
     k_imu = 0
     tag0 = epochs[0].time if epochs else 0.0
     last_broadcast = -math.inf
+    last_due: float | None = None
     for epoch in epochs:
         t = epoch.time
+        if t - last_broadcast >= sfrbx_period_s - 1e-6:
+            # right after the previous epoch (the stream stays in time order)
+            sfrbx_due = t - SFRBX_LEAD_S if last_due is None else last_due
+            last_broadcast = t
+            for sat in sorted(epoch.satellites):
+                eph = select_ephemeris(broadcast, sat, t)
+                if isinstance(eph, KeplerEphemeris):
+                    for msg in sfrbx_messages(eph, t - 1.0, iono=iono if sat[0] == "G"
+                                              else None):
+                        yield sfrbx_due, msg
         if imu is not None:
             end = k_imu
             while end < len(imu.time) and imu.time[end] <= t + 1e-9:
@@ -156,10 +171,4 @@ def receiver_messages(epochs: Sequence[GnssEpoch], nav: NavigationData, *,
                                                               imu.accel[a:b])
             k_imu = end
         yield t, rawx.encode(epoch)
-        if t - last_broadcast >= sfrbx_period_s - 1e-6:
-            last_broadcast = t
-            for sat in sorted(epoch.satellites):
-                eph = select_ephemeris(broadcast, sat, t)
-                if isinstance(eph, KeplerEphemeris):
-                    for msg in sfrbx_messages(eph, t, iono=iono if sat[0] == "G" else None):
-                        yield t, msg
+        last_due = t

@@ -251,8 +251,7 @@ class Recording:
         if not 0 <= start <= n:
             raise IndexError(f"start frame {start} outside 0..{n}")
         cap = self._open_video()
-        if start:
-            cap.set(cv2.CAP_PROP_POS_FRAMES, start)
+        _skip_to(cap, self.video_path(), start)
         return self._iter_frames(cap, start, n)
 
     def _iter_frames(self, cap: cv2.VideoCapture, start: int,
@@ -277,14 +276,29 @@ class Recording:
             raise IndexError(f"frame {index} outside 0..{n - 1}")
         cap = self._open_video()
         try:
-            if index:
-                cap.set(cv2.CAP_PROP_POS_FRAMES, index)
+            _skip_to(cap, self.video_path(), index)
             ok, image = cap.read()
         finally:
             cap.release()
         if not ok:
             raise RecordingError(f"{self.video_path()}: cannot decode frame {index}")
         return image
+
+
+RAW_MJPEG_SUFFIXES = (".mjpeg", ".mjpg")  # concatenated JPEGs: what a live session writes
+
+
+def _skip_to(cap: cv2.VideoCapture, path: Path, index: int) -> None:
+    """Position ``cap`` before frame ``index``. A raw MJPEG stream has no index to seek in
+    (FFmpeg would silently stay at frame 0): its frames are skipped one by one."""
+    if not index:
+        return
+    if path.suffix.lower() in RAW_MJPEG_SUFFIXES:
+        for _ in range(index):
+            if not cap.grab():
+                return
+    else:
+        cap.set(cv2.CAP_PROP_POS_FRAMES, index)
 
 
 # ------------------------------------------------------------------------- JSON helpers
@@ -500,6 +514,16 @@ def _parse_hull(path: Path) -> Hull:
 
 
 # -------------------------------------------------------------------------------- CSV
+
+
+def read_calibration(path: str | Path) -> Calibration:
+    """Read and check a ``calibration.json`` (e.g. an installation's, for a live session)."""
+    return _parse_calibration(Path(path))
+
+
+def read_hull(path: str | Path) -> Hull:
+    """Read and check a ``hull.json``."""
+    return _parse_hull(Path(path))
 
 
 def _read_lines(path: Path) -> list[str]:

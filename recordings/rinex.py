@@ -799,29 +799,50 @@ def write_obs(path: str | Path, epochs: list[GnssEpoch], *, marker_name: str, re
         raise ValueError("write_obs needs at least one epoch")
     present: set[str] = set()
     for k, ep in enumerate(epochs):
-        if ep.flag not in (0, 1):
-            raise ValueError(f"epoch {k}: flag {ep.flag} is not an observation epoch (0 or 1)")
         if k and ep.time < epochs[k - 1].time:
             raise ValueError(f"epoch {k} ({_fmt_time(ep.time)}) is earlier than the previous one")
-        for sat in ep.satellites:
-            if len(sat) != 3 or sat[0] not in SYSTEMS or not sat[1:].isdigit():
-                raise ValueError(f"not a RINEX satellite id: {sat!r}")
-            if sat[0] not in _WRITE_SIGNAL:
-                raise ValueError(f"{sat}: system {sat[0]} has no L1-band signal to write")
-            present.add(sat)
+        _check_epoch(ep, f"epoch {k}")
+        present.update(ep.satellites)
     systems = [s for s in SYSTEMS if any(sat[0] == s for sat in present)]
     glonass = sorted(sat for sat in present if sat[0] == "R")
     slots = dict(glonass_slots or {})
     missing = [s for s in glonass if s not in slots]
     if missing:
         raise ValueError(f"glonass_slots must give the frequency number of {missing}")
+    out = obs_header(systems, epochs[0].time, marker_name=marker_name,
+                     receiver_type=receiver_type, approx_position_ecef=approx_position_ecef,
+                     interval=interval, comments=comments,
+                     glonass_slots=slots if glonass else None, run_date=run_date)
+    for ep in epochs:
+        out += obs_epoch_lines(ep)
+    Path(path).write_text("\n".join(out) + "\n", encoding="ascii", errors="replace")
+
+
+def _check_epoch(ep: GnssEpoch, where: str) -> None:
+    if ep.flag not in (0, 1):
+        raise ValueError(f"{where}: flag {ep.flag} is not an observation epoch (0 or 1)")
+    for sat in ep.satellites:
+        if len(sat) != 3 or sat[0] not in SYSTEMS or not sat[1:].isdigit():
+            raise ValueError(f"not a RINEX satellite id: {sat!r}")
+        if sat[0] not in _WRITE_SIGNAL:
+            raise ValueError(f"{sat}: system {sat[0]} has no L1-band signal to write")
+
+
+def obs_header(systems: Sequence[str], first_time: float, *, marker_name: str,
+               receiver_type: str, approx_position_ecef: np.ndarray, interval: float,
+               comments: Sequence[str] = (), glonass_slots: dict[str, int] | None = None,
+               run_date: datetime | None = None) -> list[str]:
+    """The header lines of an observation file holding ``systems`` (see ``write_obs``)."""
+    slots = dict(glonass_slots or {})
     bad = [s for s, k in slots.items() if len(s) != 3 or s[0] != "R" or not s[1:].isdigit()
            or not -99 < k < 100]
-    if glonass and bad:
+    if bad:
         raise ValueError(f"glonass_slots entries that RINEX cannot hold: {bad}")
-
+    unknown = [s for s in systems if s not in _WRITE_SIGNAL]
+    if unknown:
+        raise ValueError(f"system(s) {unknown} have no L1-band signal to write")
     pos = np.asarray(approx_position_ecef, dtype=float)
-    t0, ticks0 = _split_time(epochs[0].time)
+    t0, ticks0 = _split_time(first_time)
     # A fixed run_date makes the output byte-identical run to run (deterministic simulator).
     now = (run_date or datetime.now(UTC)).strftime("%Y%m%d %H%M%S UTC")
     h = [
@@ -851,37 +872,39 @@ def write_obs(path: str | Path, epochs: list[GnssEpoch], *, marker_name: str, re
     ]
     # no phase shifts are applied to what we write: blank correction field
     h += [_hline(f"{s} L{_WRITE_SIGNAL[s]}", "SYS / PHASE SHIFT") for s in systems]
-    if glonass:
+    if "R" in systems and slots:
         h.append(_hline(" C1C    0.000", "GLONASS COD/PHS/BIS"))
         entries = [f"{s} {slots[s]:2d}" for s in sorted(slots)]
         for k in range(0, len(entries), 8):
             lead = f"{len(entries):3d} " if k == 0 else "    "
             h.append(_hline(lead + " ".join(entries[k:k + 8]), "GLONASS SLOT / FRQ #"))
     h.append(_hline("", "END OF HEADER"))
+    return h
 
-    out = h
+
+def obs_epoch_lines(ep: GnssEpoch) -> list[str]:
+    """The lines of one observation epoch (epoch line, one line per satellite)."""
+    out = [_epoch_line(ep.time, ep.flag, len(ep.satellites))]
     blank = " " * 16
-    for ep in epochs:
-        out.append(_epoch_line(ep.time, ep.flag, len(ep.satellites)))
-        for sat in sorted(ep.satellites):
-            o = ep.satellites[sat]
-            if not 0 <= o.lli <= 7:
-                raise ValueError(f"{sat} LLI {o.lli} at {_fmt_time(ep.time)} is not in 0..7")
-            ssi = ssi_from_snr(o.snr)
-            ssi_c = str(ssi) if ssi else " "
-            fields = []
-            # LLI belongs to the phase (written as a digit, as receivers do); SSI to all three
-            for value, what, lli_c in ((o.pseudorange, "pseudorange", " "),
-                                       (o.carrier_phase, "carrier phase", str(o.lli)),
-                                       (o.doppler, "Doppler", " ")):
-                if math.isfinite(value):
-                    fields.append(_f14(value, sat, what, ep.time) + lli_c + ssi_c)
-                else:
-                    fields.append(blank)
-            # the SNR observation itself carries no indicators
-            fields.append(_f14(o.snr, sat, "SNR", ep.time) if math.isfinite(o.snr) else blank)
-            out.append((sat + "".join(fields)).rstrip())
-    Path(path).write_text("\n".join(out) + "\n", encoding="ascii", errors="replace")
+    for sat in sorted(ep.satellites):
+        o = ep.satellites[sat]
+        if not 0 <= o.lli <= 7:
+            raise ValueError(f"{sat} LLI {o.lli} at {_fmt_time(ep.time)} is not in 0..7")
+        ssi = ssi_from_snr(o.snr)
+        ssi_c = str(ssi) if ssi else " "
+        fields = []
+        # LLI belongs to the phase (written as a digit, as receivers do); SSI to all three
+        for value, what, lli_c in ((o.pseudorange, "pseudorange", " "),
+                                   (o.carrier_phase, "carrier phase", str(o.lli)),
+                                   (o.doppler, "Doppler", " ")):
+            if math.isfinite(value):
+                fields.append(_f14(value, sat, what, ep.time) + lli_c + ssi_c)
+            else:
+                fields.append(blank)
+        # the SNR observation itself carries no indicators
+        fields.append(_f14(o.snr, sat, "SNR", ep.time) if math.isfinite(o.snr) else blank)
+        out.append((sat + "".join(fields)).rstrip())
+    return out
 
 
 # ------------------------------------------------------------------------- navigation
@@ -1037,3 +1060,70 @@ def read_nav(path: str | Path) -> NavigationData:
         unique = list(dict.fromkeys(eph[sat]))  # the same broadcast may be logged repeatedly
         nav.ephemerides[sat] = sorted(unique, key=lambda x: x.toe)
     return nav
+
+
+def _nav_number(x: float) -> str:
+    return f"{x: .12E}" if math.isfinite(x) else " " * 19
+
+
+def _nav_epoch(t_label: float) -> str:
+    d = datetime_from_gpst(round(t_label))
+    return f"{d.year:4d} {d.month:02d} {d.day:02d} {d.hour:02d} {d.minute:02d} {d.second:02d}"
+
+
+def _nav_lines(sat: str, epoch: str, values: Sequence[float]) -> list[str]:
+    first = f"{sat} {epoch}" + "".join(_nav_number(v) for v in values[:3])
+    rest = values[3:]
+    return [first] + ["    " + "".join(_nav_number(v) for v in rest[k:k + 4])
+                      for k in range(0, len(rest), 4)]
+
+
+def write_nav(path: str | Path, nav: NavigationData, *, run_date: datetime | None = None) -> None:
+    """Write ``nav`` as a RINEX 3.04 mixed navigation file (what ``read_nav`` reads back:
+    Kepler records of GPS, QZSS, Galileo and BeiDou, GLONASS records, the Klobuchar
+    coefficients and the leap seconds)."""
+    now = (run_date or datetime.now(UTC)).strftime("%Y%m%d %H%M%S UTC")
+    out = [_hline(f"{3.04:9.2f}{'':11s}{'N: GNSS NAV DATA':20s}{'M: MIXED':20s}",
+                  "RINEX VERSION / TYPE"),
+           _hline(f"{'berthing-aid':20s}{'':20s}{now:20s}", "PGM / RUN BY / DATE")]
+    for name, coeffs in (("GPSA", nav.iono_alpha), ("GPSB", nav.iono_beta)):
+        if coeffs is not None:
+            out.append(_hline(f"{name} " + "".join(f"{c:12.4E}" for c in coeffs),
+                              "IONOSPHERIC CORR"))
+    if nav.leap_seconds is not None:
+        out.append(_hline(f"{nav.leap_seconds:6d}", "LEAP SECONDS"))
+    out.append(_hline("", "END OF HEADER"))
+    nan = math.nan
+    for sat in sorted(nav.ephemerides):
+        for e in nav.ephemerides[sat]:
+            if isinstance(e, GlonassEphemeris):
+                leap = nav.leap_seconds if nav.leap_seconds is not None else 18
+                km = 1000.0
+                p, v, a = e.position, e.velocity, e.acceleration
+                values = [e.tau_n, e.gamma_n, 0.0,
+                          p[0] / km, v[0] / km, a[0] / km, float(e.health),
+                          p[1] / km, v[1] / km, a[1] / km, float(e.frequency_number),
+                          p[2] / km, v[2] / km, a[2] / km, 0.0]
+                out += _nav_lines(sat, _nav_epoch(e.toe - leap), values)
+                continue
+            if sat[0] == "C":
+                toe_sys = e.toe + BDT_MINUS_GPST
+                week = math.floor(toe_sys / SECONDS_PER_WEEK)
+                sow = toe_sys - week * SECONDS_PER_WEEK
+                week -= BDT_WEEK_OFFSET
+                label = e.toc + BDT_MINUS_GPST
+            else:
+                week = math.floor(e.toe / SECONDS_PER_WEEK)
+                sow = e.toe - week * SECONDS_PER_WEEK
+                label = e.toc
+            sources = float(e.data_source) if sat[0] == "E" else 0.0
+            values = [e.af0, e.af1, e.af2,
+                      float(e.iode), e.crs, e.delta_n, e.m0,
+                      e.cuc, e.e, e.cus, e.sqrt_a,
+                      sow, e.cic, e.omega0, e.cis,
+                      e.i0, e.crc, e.omega, e.omega_dot,
+                      e.idot, sources, float(week), 0.0,
+                      2.0, float(e.health), e.tgd, float(e.iode) if sat[0] in "GJ" else nan,
+                      sow, nan]
+            out += _nav_lines(sat, _nav_epoch(label), values)
+    Path(path).write_text("\n".join(out) + "\n", encoding="ascii")

@@ -873,6 +873,8 @@ def test_layout_1280x800(browser, server: str) -> None:
                 (sel, box)
         video = pg.locator("#video").bounding_box()
         assert video["width"] >= 800, "the video stays the largest thing on the screen"
+        assert not pg.locator("#st-rec").is_visible(), "a replay is not being recorded"
+        assert not pg.locator("#alarms").is_visible(), "no alarm on the undamaged recording"
         shot(pg, "09_layout_1280x800")
     finally:
         _close(pg, server)

@@ -67,6 +67,7 @@ export const api = {
   recordings: () => request("GET", "/api/recordings"),
   createSession: (body) => request("POST", "/api/sessions", body),
   session: (id) => request("GET", `/api/sessions/${id}`),
+  sessions: () => request("GET", "/api/sessions"),
   deleteSession: (id) =>
     // keepalive: also sent while the page unloads
     fetch(`/api/sessions/${id}`, { method: "DELETE", keepalive: true, headers: authHeaders() })

@@ -123,6 +123,18 @@ function render() {
   alarms.update(f?.alarms);
   if (f) { controls.setTime(f.t); controls.setReplay(f.replay); }
   legend(f);
+  recordIndicator(f?.live);
+}
+
+// Live sessions: the record indicator (and which inputs are down) from every frame.
+function recordIndicator(live) {
+  const chip = $("st-rec");
+  chip.hidden = !live;
+  if (!live) return;
+  chip.dataset.level = live.inputs_down.length ? "warn" : "bad";
+  chip.querySelector(".k").textContent = live.recording ? "● REC" : "LIVE";
+  chip.querySelector(".v").textContent = (live.recording ? fmtTime(live.record_s) : "not recorded")
+    + (live.inputs_down.length ? ` · down: ${live.inputs_down.join(", ")}` : "");
 }
 
 // Targets and berth lines set or removed by this page show at once, until the frames from the
@@ -442,7 +454,11 @@ async function start() {
     const params = new URLSearchParams(location.search);
     const { recordings, default: def } = await api.recordings();
     // ?session=ID watches a session opened elsewhere (a second screen on the bridge)
-    const joined = params.get("session") && await api.session(params.get("session")).catch(() => null);
+    let joined = params.get("session") && await api.session(params.get("session")).catch(() => null);
+    // a server running a live session opens it (the ship's own), unless a recording is asked for
+    if (!joined && !params.get("recording")) {
+      joined = (await api.sessions().catch(() => ({ sessions: [] }))).sessions.find((s) => s.live);
+    }
     const wanted = joined?.recording || params.get("recording");
     const name = recordings.some((r) => r.name === wanted) ? wanted : def || recordings[0]?.name;
     controls.setRecordings(recordings, name);

@@ -1,0 +1,322 @@
+"""Live sessions: the same ``Session`` (history, stream, page, alarms) fed by live devices.
+
+A live session differs from a replay only in where the sensor messages come from: a
+``live.source.LiveSource`` (the devices of a ``live.config.LiveConfig``, merged in time order
+on GNSS time) instead of ``engine.messages.sensor_messages(recording)``. :class:`LiveRunner`
+takes the replayer's place in the session: it runs ``engine.driver.dispatch`` on every
+message in one thread and hands each frame to the session; a second thread takes the messages
+from the source and writes the recording as they come (``live.recorder.LiveRecorder``), so the
+recording never waits for the engine. An engine slower than the sensors skips video frames
+(never IMU or GNSS) once more than ``MAX_QUEUED_FRAMES`` wait, and says how many. There is
+nothing to pause or seek in a live feed: those controls are refused (the recording written live
+replays with them).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from engine.driver import FusionEngine, dispatch
+from engine.messages import FrameMessage
+from estimator.integrity import IntegrityConfig
+from estimator.records import ImuData, NavigationData
+from live.bridge import (
+    Iec450Sender,
+    NmeaOutput,
+    NmeaTcpServer,
+    SentenceSink,
+    bridge_alerts,
+    bridge_state,
+)
+from live.config import BridgeConfig, LiveConfig
+from live.nmea import SentenceMaker
+from live.recorder import VIDEO_FILE, LiveRecorder
+from live.source import LiveSource
+from recordings.format import Manifest, Recording, default_files, read_calibration, read_hull
+from recordings.rinex import read_nav
+
+from .errors import Conflict
+from .replay import FrameResult, ReplayState
+from .sessions import Session, SessionManager
+
+log = logging.getLogger(__name__)
+
+FIRST_MESSAGE_TIMEOUT_S = 30.0
+MAX_QUEUED_FRAMES = 10  # 1 s of video at 10 fps: beyond, the engine skips frames to keep up
+
+
+class LiveRunner:
+    """Runs the engine on a live source in a thread (the ``Replayer``'s interface)."""
+
+    def __init__(self, source: LiveSource, make_engine: Any, sink: Session, rec: Recording,
+                 recorder: LiveRecorder | None, first: Any) -> None:
+        self.source = source
+        self._make_engine = make_engine
+        self._sink = sink
+        self.rec = rec
+        self.recorder = recorder
+        self._first = first
+        self._state = ReplayState.STARTING
+        self._error: str | None = None
+        self._t = float(first.t)
+        self._frames = 0
+        self._lag = 0.0
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._frame_times = np.empty(1024)
+        self._queue: collections.deque[Any] = collections.deque([first])  # for the engine
+        self._queued_frames = int(isinstance(first, FrameMessage))
+        self._arrived = threading.Condition(self._lock)
+        self.skipped_frames = 0  # frames the engine skipped to keep up with the sensors
+        self.recording_error: str | None = None
+        self._thread = threading.Thread(target=self._run, name="live-session", daemon=True)
+        self._pump = threading.Thread(target=self._take_messages, name="live-recorder",
+                                      daemon=True)
+
+    # ------------------------------------------------------------------ control
+
+    def start(self, paused: bool = False) -> None:
+        if self.recorder is not None:
+            self.recorder.write(self._first, self.source.nav, {})
+        self._pump.start()
+        self._thread.start()
+
+    def play(self) -> bool:
+        if self._state == ReplayState.ERROR:
+            raise Conflict(f"the live session stopped: {self._error}; restart the server")
+        return True  # a live feed is always playing
+
+    def pause(self) -> None:
+        raise Conflict("a live session cannot be paused: the ship does not wait (replay its "
+                       "recording to pause)")
+
+    def set_speed(self, speed: float | None) -> None:
+        raise Conflict("a live session runs at real time")
+
+    def seek(self, t: float) -> None:
+        raise Conflict("a live session cannot seek: replay its recording to look back")
+
+    def stop(self, timeout: float | None = 5.0) -> None:
+        self._stop.set()
+        with self._arrived:
+            self._arrived.notify_all()
+        for thread in (self._thread, self._pump):
+            if thread.is_alive() and threading.current_thread() is not thread:
+                thread.join(timeout)
+        self.source.close()
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            except OSError:
+                log.exception("closing the live recording failed")
+        with self._lock:
+            self._state = ReplayState.STOPPED
+
+    @property
+    def state(self) -> ReplayState:
+        return self._state
+
+    def status(self) -> dict[str, Any]:
+        with self._lock:
+            return {
+                "state": self._state.value, "time_gpst": self._t, "playing": True,
+                "speed": 1.0, "seek_target_gpst": None, "frames_processed": self._frames,
+                "lag_s": self._lag, "behind_s": 0.0, "error": self._error,
+                "checkpoints": [], "checkpoint_note": "live: no checkpoints",
+            }
+
+    def live_status(self) -> dict[str, Any]:
+        rec = None if self.recorder is None else self.recorder.status()
+        return {"inputs": self.source.health(), "recording": rec,
+                "skipped_frames": self.skipped_frames, "recording_error": self.recording_error}
+
+    # ------------------------------------------------------------------ thread
+
+    def _run(self) -> None:
+        try:
+            engine = self._make_engine()
+        except Exception as exc:
+            log.exception("cannot start the fusion engine")
+            self._fail(f"cannot start the fusion engine: {exc}")
+            return
+        with self._lock:
+            self._state = ReplayState.PLAYING
+        self._notify(ReplayState.PLAYING)
+        while True:
+            msg = self._next_for_engine()
+            if msg is None:
+                return
+            try:
+                self._process(engine, msg)
+            except Exception as exc:  # noqa: BLE001 - the thread has nobody to raise to
+                log.exception("live session failed at t=%.3f", msg.t)
+                self._fail(f"live session failed at gpst {msg.t:.3f}: {exc!r}")
+                return
+
+    def _take_messages(self) -> None:
+        """The sensors' messages as they come: into the recording, then queued for the engine."""
+        while not self._stop.is_set():
+            msg = self.source.next(0.2)
+            if msg is None:
+                continue
+            if self.recorder is not None:
+                try:
+                    self.recorder.write(msg, self.source.nav, {})
+                except OSError as exc:  # a full disk must not stop the navigation
+                    log.exception("writing the live recording failed")
+                    self.recording_error = f"writing the recording failed: {exc}"
+            with self._arrived:
+                self._queue.append(msg)
+                self._queued_frames += isinstance(msg, FrameMessage)
+                self._arrived.notify()
+
+    def _next_for_engine(self) -> Any:
+        """The next message for the engine (None once stopped); video frames are skipped while
+        more than ``MAX_QUEUED_FRAMES`` wait (the engine is behind the sensors)."""
+        with self._arrived:
+            while True:
+                while not self._queue and not self._stop.is_set():
+                    self._arrived.wait(0.2)
+                if self._stop.is_set():
+                    return None
+                msg = self._queue.popleft()
+                if not isinstance(msg, FrameMessage):
+                    return msg
+                self._queued_frames -= 1
+                if self._queued_frames < MAX_QUEUED_FRAMES:
+                    return msg
+                self.skipped_frames += 1
+
+    def _process(self, engine: FusionEngine, msg: Any) -> None:
+        fused = dispatch(engine, msg)
+        with self._lock:
+            self._t = msg.t
+        if not isinstance(msg, FrameMessage):
+            return
+        n = self._frames
+        if n >= len(self._frame_times):
+            self._frame_times = np.concatenate([self._frame_times, np.empty(n)])
+        self._frame_times[n] = msg.t
+        self.rec.frame_times = self._frame_times[:n + 1]  # what designation looks frames up in
+        with self._lock:
+            self._frames = n + 1
+            now = self.source.aligner.clock.to_gpst(time.monotonic())
+            self._lag = 0.0 if now is None else max(0.0, now - msg.t)  # behind the sensors
+        self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, True, time.time()),
+                            engine)
+
+    def _fail(self, message: str) -> None:
+        with self._lock:
+            self._error = message
+            self._state = ReplayState.ERROR
+        self._notify(ReplayState.ERROR)
+
+    def _notify(self, state: ReplayState) -> None:
+        try:
+            self._sink.on_state(state)
+        except Exception:
+            log.exception("the session failed on state %s", state.value)
+
+
+# ----------------------------------------------------------------------------- bridge
+
+
+class BridgeFeed:
+    """A session frame listener sending NMEA to the bridge (module docstring)."""
+
+    def __init__(self, config: BridgeConfig, *, simulated: bool = False) -> None:
+        sinks: list[SentenceSink] = []
+        self.udp = self.tcp = None
+        if config.udp is not None:
+            self.udp = Iec450Sender(config.udp, config.source_id)
+            sinks.append(self.udp)
+        if config.tcp is not None:
+            self.tcp = NmeaTcpServer(*config.tcp)
+            sinks.append(self.tcp)
+        self.output = NmeaOutput(sinks, SentenceMaker(leap_seconds=config.leap_seconds),
+                                 config.rates_hz)
+        self.simulated = simulated
+        self.sent = 0
+
+    def __call__(self, session: Session, result: FrameResult) -> None:
+        if result.state is None or not result.live:
+            return
+        self.sent += len(self.output.update(bridge_state(result.state,
+                                                         simulated=self.simulated)))
+        self.sent += len(self.output.alerts(bridge_alerts(session.alarms.all(),
+                                                          session.start_gpst)))
+
+    def close(self) -> None:
+        if self.udp is not None:
+            self.udp.close()
+        if self.tcp is not None:
+            self.tcp.close()
+
+
+# ----------------------------------------------------------------------------- start
+
+
+def live_recording_stub(config: LiveConfig, start_gpst: float, nav: NavigationData,
+                        directory: Path) -> Recording:
+    """The ``Recording`` a live session serves from: the installation (calibration, hull,
+    origin) of the config, the live recording's directory, times growing as frames come."""
+    calibration = read_calibration(config.calibration)
+    hull = read_hull(config.hull)
+    files = default_files(len(config.receivers), reference=False)
+    files["video"] = VIDEO_FILE
+    manifest = Manifest(name=config.name, scenario=None, seed=None, start_gpst=start_gpst,
+                        duration_s=0.0, origin_llh_deg=config.origin_llh_deg, files=files)
+    t = np.array([start_gpst])
+    return Recording(path=directory, manifest=manifest, calibration=calibration, hull=hull,
+                     imu=ImuData(t, np.zeros((1, 3)), np.zeros((1, 3))), frame_times=t,
+                     gnss=[], gnss_headers=[], nav=nav, reference=None, scene_points=None,
+                     scene_point_kinds=None)
+
+
+def start_live_session(manager: SessionManager, config: LiveConfig, *,
+                       options: dict[str, Any] | None = None,
+                       integrity: IntegrityConfig | None = None,
+                       first_message_timeout_s: float = FIRST_MESSAGE_TIMEOUT_S) -> Session:
+    """Open the devices, wait for the first message, and start the live session (registered
+    with ``manager``; recording under ``config.record_dir`` when set)."""
+    seed = read_nav(config.nav_seed) if config.nav_seed is not None else None
+    source = LiveSource(config, seed).start()
+    deadline = time.monotonic() + first_message_timeout_s
+    first = None
+    while first is None and time.monotonic() < deadline:
+        first = source.next(0.2)
+    if first is None:
+        health = "; ".join(f"{h['name']}: {h['state']}" + (f" ({h['error']})" if h['error']
+                                                          else "") for h in source.health())
+        source.close()
+        raise ConnectionError(f"no sensor message within {first_message_timeout_s:g} s "
+                              f"({health})")
+    recorder = None
+    directory = config.path.parent
+    if config.record_dir is not None:
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        directory = config.record_dir / f"{config.name}-{stamp}"
+        recorder = LiveRecorder(directory, name=f"{config.name}-{stamp}",
+                                calibration=read_calibration(config.calibration),
+                                hull=read_hull(config.hull),
+                                origin_llh_deg=config.origin_llh_deg,
+                                receivers=len(config.receivers))
+    rec = live_recording_stub(config, float(first.t), source.nav, directory)
+
+    def runner(make_engine: Any, session: Session) -> LiveRunner:
+        return LiveRunner(source, make_engine, session, rec, recorder, first)
+
+    session = manager.add(rec, config.name, runner, options or {}, integrity=integrity)
+    if config.bridge.udp is not None or config.bridge.tcp is not None:
+        feed = BridgeFeed(config.bridge)
+        session.frame_listeners.append(feed)
+        session.closers.append(feed.close)
+    return session

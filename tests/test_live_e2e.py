@@ -1,0 +1,322 @@
+"""Live end to end: ``berthing-aid emulate`` plays the 12 s simulated recording on loopback as
+the devices speak (four UBX TCP streams, the text IMU over UDP, an HTTP MJPEG camera);
+``berthing-aid serve --live`` runs the engine on them. Checked: the live fused trajectory
+matches a replay of the same recording on the same server; the page streams the live session
+with its record indicator; the bridge NMEA (UDP IEC 61162-450 and TCP) parses with
+pynmeagps and agrees with the trajectory; the recording written live loads and replays.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pynmeagps import NMEAReader
+
+from estimator.frames import ecef_to_ned, geodetic_to_ecef
+
+ROOT = Path(__file__).resolve().parent.parent
+ARTIFACTS = ROOT / "tests" / "artifacts"
+CHROMIUM = Path("/usr/bin/chromium")
+
+pytestmark = pytest.mark.slow
+
+
+def _free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _get(url: str) -> bytes:
+    with urllib.request.urlopen(url, timeout=10) as res:
+        return res.read()
+
+
+def _post(url: str, body: dict) -> dict:
+    req = urllib.request.Request(url, data=json.dumps(body).encode(), method="POST",
+                                 headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(req, timeout=30) as res:
+        return json.loads(res.read())
+
+
+def _trajectory(base: str, session: str) -> dict[str, np.ndarray]:
+    text = _get(f"{base}/api/sessions/{session}/trajectory?format=csv").decode()
+    rows = [line.split(",") for line in text.strip().splitlines()]
+    head, body = rows[0], rows[1:]
+    cols = {h: np.array([float(r[i]) for r in body]) for i, h in enumerate(head)
+            if h != "phase"}
+    cols["phase"] = np.array([r[head.index("phase")] for r in body])
+    return cols
+
+
+def _ned(traj: dict[str, np.ndarray], origin: np.ndarray) -> np.ndarray:
+    return np.array([ecef_to_ned(geodetic_to_ecef(math.radians(a), math.radians(b), h), origin)
+                     for a, b, h in zip(traj["lat_deg"], traj["lon_deg"], traj["height"],
+                                        strict=True)])
+
+
+def _sentences(data: bytes) -> list:
+    return [msg for _raw, msg in NMEAReader(io.BytesIO(data), quitonerror=2) if msg is not None]
+
+
+@pytest.fixture(scope="module")
+def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
+    """Emulator + ``serve --live`` until the recording has played out; yields what was seen."""
+    work = tmp_path_factory.mktemp("live")
+    ARTIFACTS.mkdir(exist_ok=True)
+    config = work / "live.toml"
+    udp_port, tcp_port, port = _free_port(socket.SOCK_DGRAM), _free_port(), _free_port()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OPENBLAS_NUM_THREADS": "1"}
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.bind(("127.0.0.1", udp_port))
+    udp.settimeout(0.05)
+    procs = []
+    with (ARTIFACTS / "live-emulator.log").open("w") as emu_log, \
+            (ARTIFACTS / "live-server.log").open("w") as srv_log:
+        emu = subprocess.Popen(
+            [sys.executable, "-m", "backend.cli", "emulate", str(sim_recording),
+             "--write-config", str(config), "--record-dir", str(work / "recorded"),
+             "--bridge-udp", f"127.0.0.1:{udp_port}", "--bridge-tcp", f"127.0.0.1:{tcp_port}"],
+            cwd=ROOT, stdout=emu_log, stderr=subprocess.STDOUT, env=env)
+        procs.append(emu)
+        try:
+            deadline = time.monotonic() + 60
+            while not config.exists():
+                assert emu.poll() is None, (ARTIFACTS / "live-emulator.log").read_text()
+                assert time.monotonic() < deadline, "the emulator wrote no config"
+                time.sleep(0.2)
+            time.sleep(0.5)  # the file is complete
+            srv = subprocess.Popen(
+                [sys.executable, "-m", "backend.cli", "serve", str(sim_recording), "--live",
+                 str(config), "--port", str(port), "--no-viewer", "--heading-alert-limit", "3"],
+                cwd=ROOT, stdout=srv_log, stderr=subprocess.STDOUT, env=env)
+            procs.append(srv)
+            base = f"http://127.0.0.1:{port}"
+            while True:
+                assert srv.poll() is None, (ARTIFACTS / "live-server.log").read_text()
+                with contextlib.suppress(OSError):
+                    _get(base + "/openapi.json")
+                    break
+                assert time.monotonic() < deadline + 60, "the server did not answer"
+                time.sleep(0.3)
+            sessions = json.loads(_get(base + "/api/sessions"))["sessions"]
+            live = next(s for s in sessions if s["live"] is not None)
+            tcp = socket.create_connection(("127.0.0.1", tcp_port), timeout=5)
+            tcp.settimeout(0.05)
+            datagrams, stream, page = [], bytearray(), None
+            if CHROMIUM.exists():
+                page = _open_page(base)
+            frames_seen = []
+            # until the emulator has played the recording and the session has caught up
+            progress = (-1, time.monotonic())
+            while emu.poll() is None or time.monotonic() - progress[1] < 2.0:
+                if emu.poll() is not None:  # played out: wait for the session to catch up
+                    st = json.loads(_get(f"{base}/api/sessions/{live['id']}"))
+                    n = st["frames_processed"]
+                    camera = next(i for i in st["live"]["inputs"] if i["name"] == "camera")
+                    if n != progress[0] or n < camera["received"] - camera["late"]:
+                        progress = (n, time.monotonic())
+                with contextlib.suppress(TimeoutError):
+                    datagrams.append(udp.recv(2048))
+                with contextlib.suppress(TimeoutError):
+                    stream += tcp.recv(65536)
+                if page is not None and len(frames_seen) < 40:
+                    frames_seen.append(page[1].evaluate(
+                        "() => ({f: window.berthing.frame?.frame ?? null, "
+                        "rec: document.querySelector('#st-rec').hidden ? null : "
+                        "document.querySelector('#st-rec').textContent})"))
+                assert time.monotonic() < deadline + 120, "the live run did not end"
+            status = json.loads(_get(f"{base}/api/sessions/{live['id']}"))
+            live_traj = _trajectory(base, live["id"])
+            replay = _post(base + "/api/sessions", {"recording": sim_recording.name,
+                                                    "speed": "max"})
+            while json.loads(_get(f"{base}/api/sessions/{replay['id']}"))["state"] != "ended":
+                assert time.monotonic() < deadline + 240, "the replay did not end"
+                time.sleep(0.5)
+            replay_traj = _trajectory(base, replay["id"])
+            if page is not None:
+                page[1].screenshot(path=str(ARTIFACTS / "live-page.png"))
+                page[0].close()
+        finally:
+            for p in reversed(procs):  # the server first: it closes the live recording
+                p.terminate()
+                try:
+                    p.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+            udp.close()
+    yield {"status": status, "live": live_traj, "replay": replay_traj, "udp": datagrams,
+           "tcp": bytes(stream), "frames_seen": frames_seen, "work": work,
+           "recording": sim_recording}
+
+
+def _open_page(base: str):
+    from playwright.sync_api import sync_playwright
+
+    pw = sync_playwright().start()
+    browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox",
+                                                                       "--disable-gpu"])
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.goto(base + "/")  # no ?session: the page opens the live session itself
+
+    class Closer:
+        def close(self) -> None:
+            browser.close()
+            pw.stop()
+
+    return Closer(), page
+
+
+def test_live_trajectory_matches_the_replay(live_run):
+    live, replay = live_run["live"], live_run["replay"]
+    from recordings.format import load
+
+    rec = load(live_run["recording"], load_gnss=False)
+    origin = rec.manifest.origin_llh
+    fused = live["phase"] == "fused"
+    # (an engine slower than real time skips frames: fewer on a loaded machine than 121)
+    assert fused.sum() > 25, f"the live session fused {fused.sum()} frames"
+    # The trajectory is the engine's (world frame: the body origin at the start, carrier-phase
+    # integrated); its absolute anchor (standalone GNSS, metre-level) is compared separately.
+    p_live = np.column_stack([live["north"], live["east"]])
+    p_replay = np.column_stack([replay["north"], replay["east"]])
+    # the replay's pose at each live frame time (frames 0.1 s apart, ~1 m/s: interpolated)
+    at = np.column_stack([np.interp(live["gpst"], replay["gpst"], p_replay[:, k])
+                          for k in range(2)])
+    common = fused & (live["gpst"] >= replay["gpst"][replay["phase"] == "fused"][0])
+    diff = np.linalg.norm((p_live - at)[common], axis=1)
+    anchor = np.linalg.norm(_ned(live, origin)[common, :2] - np.column_stack(
+        [np.interp(live["gpst"], replay["gpst"], _ned(replay, origin)[:, k])
+         for k in range(2)])[common], axis=1)
+    print(f"live vs replay, {common.sum()} fused frames: trajectory difference median "
+          f"{np.median(diff) * 100:.2f} cm, max {diff.max() * 100:.2f} cm; absolute anchor "
+          f"difference median {np.median(anchor):.3f} m")
+    # within 2 cm; the odd frame beyond on a loaded machine (frames are timed on arrival, and a
+    # busy CPU delays a few): 95 % within 2 cm, none beyond 5 cm
+    assert np.percentile(diff, 95) < 0.02 and diff.max() < 0.05
+    assert np.median(anchor) < 1.0  # standalone-GNSS level
+    status = live_run["status"]
+    # every frame either processed or skipped by an engine behind the sensors (counted)
+    seen = status["frames_processed"] + status["live"]["skipped_frames"]
+    assert seen >= 0.95 * len(rec.frame_times), json.dumps(
+        {k: status[k] for k in ("state", "time_s", "frames_processed", "error", "live")})
+
+
+def test_page_streams_the_live_session_with_the_record_indicator(live_run):
+    seen = live_run["frames_seen"]
+    if not seen:
+        pytest.skip("no chromium at /usr/bin/chromium")
+    frames = [s["f"] for s in seen if s["f"] is not None]
+    assert len(set(frames)) >= 5, f"the page showed frames {frames}"
+    assert any(s["rec"] and "REC" in s["rec"] for s in seen), seen[-3:]
+
+
+def test_bridge_nmea_parses_and_agrees(live_run):
+    datagrams = live_run["udp"]
+    assert datagrams and all(d.startswith(b"UdPbC\x00") for d in datagrams)
+    udp_sentences = []
+    for d in datagrams:
+        for part in d[6:].split(b"\\")[1:]:  # tag block, sentence, tag block, sentence…
+            if part.startswith(b"$"):
+                udp_sentences += _sentences(part)
+    tcp_sentences = _sentences(live_run["tcp"])
+    for sentences in (udp_sentences, tcp_sentences):
+        kinds = {m.msgID for m in sentences}
+        assert {"HDT", "THS", "ROT", "VTG", "GGA", "ZDA"} <= kinds, kinds
+    live = live_run["live"]
+    fused = live["phase"] == "fused"
+    gga = [m for m in udp_sentences if m.msgID == "GGA" and m.quality == 1]
+    assert gga, "no GGA with a trusted position"
+    lat, lon = float(gga[-1].lat), float(gga[-1].lon)
+    assert np.min(np.hypot(live["lat_deg"][fused] - lat, live["lon_deg"][fused] - lon)) < 2e-6
+    hdt = [float(m.headingT) for m in udp_sentences if m.msgID == "HDT" and m.headingT != ""]
+    yaw = live["yaw_deg"][fused] % 360
+    assert hdt and min(abs((hdt[-1] - y + 180) % 360 - 180) for y in yaw) < 0.1
+
+
+def test_recording_written_live_loads_and_replays(live_run):
+    from engine.driver import create_engine, dispatch
+    from engine.messages import sensor_messages
+    from recordings.format import load
+
+    (recorded,) = (live_run["work"] / "recorded").iterdir()
+    rec = load(recorded)
+    original = load(live_run["recording"], load_gnss=False)
+    assert json.loads((recorded / "manifest.json").read_text())["live"]["complete"] is True
+    assert len(rec.frame_times) >= 0.95 * len(original.frame_times)
+    assert len(rec.imu.time) >= 0.99 * len(original.imu.time)
+    assert all(len(e) >= 12 for e in rec.gnss)
+    engine = create_engine(rec.calibration, rec.nav, {})
+    states = [s for m in sensor_messages(rec) if (s := dispatch(engine, m)) is not None]
+    assert states and states[-1].status.phase == "fused"
+    live = live_run["live"]
+    k = len(live["gpst"]) - 1
+    last = min(states, key=lambda s: abs(float(s.time) - live["gpst"][k]))
+    assert abs(float(last.time) - live["gpst"][k]) < 0.05
+    d = np.array([live["north"][k], live["east"][k]]) - np.asarray(last.position_ned)[:2]
+    assert np.linalg.norm(d) < 0.05, f"the recorded berthing replays {np.linalg.norm(d):.3f} m " \
+                                     f"away from the live trajectory at {last.time}"
+
+
+def test_example_config_is_valid(tmp_path: Path):
+    """The commented example in the repository parses (with its files in place)."""
+    from live.config import ConfigError, load_config
+
+    text = (ROOT / "live" / "example.toml").read_text()
+    (tmp_path / "calibration.json").write_text("{}")
+    (tmp_path / "hull.json").write_text("{}")
+    (tmp_path / "live.toml").write_text(text)
+    cfg = load_config(tmp_path / "live.toml")
+    assert cfg.imu.kind == "text" and len(cfg.receivers) == 4
+    assert cfg.bridge.udp == ("239.192.0.2", 60002) and cfg.bridge.rates_hz["heading"] == 10
+    (tmp_path / "live.toml").write_text(text.replace("latency_s", "latncy_s"))
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['latncy_s'\]"):
+        load_config(tmp_path / "live.toml")
+
+
+def test_an_engine_behind_the_sensors_skips_frames_never_imu_or_gnss():
+    """Messages queued faster than the engine takes them: every IMU sample reaches the engine,
+    video frames beyond MAX_QUEUED_FRAMES waiting are skipped (and counted), in time order."""
+    from backend.live_session import MAX_QUEUED_FRAMES, LiveRunner
+    from engine.messages import FrameMessage, ImuMessage
+
+    class Source:
+        nav = None
+
+        def next(self, timeout):  # nothing more arrives
+            return None
+
+        def close(self):
+            pass
+
+    msgs = []
+    for k in range(40):  # 4 s: 10 IMU samples and one frame per 0.1 s
+        t = 100.0 + 0.1 * k
+        msgs += [ImuMessage(t + 0.01 * j, np.zeros(3), np.zeros(3)) for j in range(6)]
+        msgs.append(FrameMessage(t + 0.055, k, np.zeros((2, 2, 3), np.uint8)))
+        msgs += [ImuMessage(t + 0.01 * j, np.zeros(3), np.zeros(3)) for j in range(6, 10)]
+    runner = LiveRunner(Source(), None, None, None, None, msgs[0])
+    for m in msgs[1:]:
+        runner._queue.append(m)
+        runner._queued_frames += isinstance(m, FrameMessage)
+    taken = []
+    while runner._queue:
+        taken.append(runner._next_for_engine())
+    imu = [m for m in taken if isinstance(m, ImuMessage)]
+    frames = [m for m in taken if isinstance(m, FrameMessage)]
+    assert len(imu) == 400
+    assert len(frames) == MAX_QUEUED_FRAMES and runner.skipped_frames == 40 - MAX_QUEUED_FRAMES
+    assert [f.index for f in frames] == list(range(40 - MAX_QUEUED_FRAMES, 40))  # the newest
+    assert all(a.t <= b.t for a, b in zip(taken, taken[1:], strict=False))
