@@ -227,9 +227,11 @@ class IntegrityMonitor:
                 continue
             self._rx_missing[i] = self._rx_missing.get(i, 0) + 1
             if self._rx_missing[i] >= self.cfg.receiver_silent_epochs:
+                # receiver 1 is the reference of every single difference (fusion and compass)
+                then = ("it is the compass's reference antenna: no carrier-phase attitude "
+                        "without it") if i == 0 else "the compass works with the other antennas"
                 self.raise_fault(kind, t, f"receiver {i + 1} silent for "
-                                 f"{self._rx_missing[i]} epochs: the compass works with the "
-                                 "other antennas")
+                                 f"{self._rx_missing[i]} epochs: {then}")
         self._stream_checks(t)
         return True
 

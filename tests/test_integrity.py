@@ -142,6 +142,7 @@ FAULT_CASES = {
     "imu-backwards:6:0.3": "time-backwards",
     "receiver-missing": "receiver-4-silent",
     "receiver-silent:2:6:3": "receiver-2-silent",
+    "receiver-silent:1:0:12": "receiver-1-silent",  # the reference antenna, from the start
     "cycle-slips:6": "cycle-slips",
     "clock-jump:6:1": "clock-jump",
     "spp-outlier:6:3": "spp-implausible",
@@ -181,6 +182,12 @@ def test_fault_is_declared_and_never_misleads(fault: str, sim_recording: Path,
         # declared, and no position given (never a confident wrong one)
         assert run.origin_time is None and ig.available_fraction == 0.0
         assert "receiver-4-silent" in raised
+        return
+    if fault == "receiver-silent:1:0:12":
+        # the reference of every single difference: no attitude, no position, and said so
+        assert run.origin_time is None and ig.available_fraction == 0.0
+        assert any("reference antenna" in a.message for a in ig.alerts
+                   if a.kind == "receiver-1-silent" and a.active), ig.alerts
         return
     assert run.origin_time is not None, "the fusion never started"
     # trusted before the fault (the misleading count below means something)
