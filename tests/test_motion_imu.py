@@ -90,7 +90,8 @@ def test_keyframes_are_hit_and_motion_is_deterministic(motion):
     np.testing.assert_array_equal(same.position_ned,
                                   motion.state(np.linspace(0, sc.duration_s, 11)).position_ned)
     other = ShipMotion(sc, seed=8).state(np.linspace(0, sc.duration_s, 11))
-    assert np.abs(other.euler[:, 0] - same.euler[:, 0]).max() > 1e-4  # other wave phases
+    if sc.wave_roll_deg > 0:  # (the static scenario has no waves)
+        assert np.abs(other.euler[:, 0] - same.euler[:, 0]).max() > 1e-4  # other wave phases
     with pytest.raises(ValueError):
         motion.state(sc.duration_s + 60.0)
 

@@ -420,8 +420,8 @@ def test_only_obstacles_are_drawn_unless_all_points_are_asked_for(page) -> None:
     far away) only on demand, as faint hollow rings."""
     wait_trusted(page)
     # (the 12 s recording ends 45 m off the quay: few of its points are obstacles yet)
-    wait_frame(page, "f => f.overlay && f.overlay.video.points.obstacle.filter(o => o).length "
-               ">= 2 && f.overlay.video.points.obstacle.includes(false)", timeout_s=20)
+    wait_frame(page, "f => f.overlay && f.overlay.video.points.obstacle.includes(true) "
+               "&& f.overlay.video.points.obstacle.includes(false)", timeout_s=40)
     pause(page)
     s = page.evaluate(SAMPLE_POINT_CENTRES, False)
     assert len(s["obstacle"]) >= 1 and len(s["other"]) >= 3, s
