@@ -22,7 +22,7 @@ what the estimator reads.
 | clock-jump | the common receiver clock jumps | at, ms (40, 1) |
 | spp-outlier | every pseudorange off by 1–5 km (a broken code loop) | start, length (40, 10) |
 | half-sky | satellites of the quay-side half of the sky (north) lost from the start | – |
-| video-zeroed | bytes of the video file zeroed | offset MiB, length MiB (8, 3) |
+| video-zeroed | bytes of the video file zeroed | offset MiB, length MiB (3, 1) |
 | video-end | the video ends early (``frames.csv`` keeps its rows) | at (45) |
 | video-frozen | one frame repeated | start, length (40, 5) |
 | video-black | black frames | start, length (40, 3) |
@@ -72,7 +72,7 @@ DEFAULTS: dict[str, tuple[float, ...]] = {
     "imu-spikes": (40.0, 5.0), "imu-saturated": (40.0, 5.0), "imu-backwards": (40.0, 0.5),
     "receiver-missing": (), "receiver-silent": (4.0, 40.0, 10.0), "cycle-slips": (40.0,),
     "clock-jump": (40.0, 1.0), "spp-outlier": (40.0, 10.0), "half-sky": (),
-    "video-zeroed": (8.0, 3.0), "video-end": (45.0,), "video-frozen": (40.0, 5.0),
+    "video-zeroed": (3.0, 1.0), "video-end": (45.0,), "video-frozen": (40.0, 5.0),
     "video-black": (40.0, 3.0), "video-blinded": (40.0, 3.0),
 }
 FAULTS = tuple(DEFAULTS)
