@@ -22,10 +22,6 @@ def distance_band(distance: np.ndarray) -> np.ndarray:
     return np.searchsorted(DISTANCE_BANDS_M, np.asarray(distance, dtype=float), side="right")
 
 
-def band_color(distance: np.ndarray) -> list[str]:
-    return [BAND_COLORS[int(b)] for b in distance_band(distance)]
-
-
 def polygon_distances(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     """Distances (m) from plan points (N,2) to a closed polygon (M,2), 0 inside it."""
     pts = np.asarray(points, dtype=float).reshape(-1, 2)

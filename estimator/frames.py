@@ -187,13 +187,6 @@ def ned_to_ecef(ned: np.ndarray, origin_llh: np.ndarray) -> np.ndarray:
     return np.asarray(ned) @ C_ecef_to_level(origin_llh[0], origin_llh[1]) + o
 
 
-def earth_radii(lat: float) -> tuple[float, float]:
-    """Meridian (R_N) and transverse (R_E) radii of curvature."""
-    s2 = np.sin(lat) ** 2
-    d = 1.0 - WGS84_E2 * s2
-    return WGS84_A * (1 - WGS84_E2) / d**1.5, WGS84_A / np.sqrt(d)
-
-
 def normal_gravity(lat: float, h: float) -> float:
     """Somigliana normal gravity with a free-air height term (m/s^2, positive down)."""
     s2 = np.sin(lat) ** 2

@@ -18,7 +18,6 @@ ended cleanly (``"complete": true``) and what the inputs lost.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -197,9 +196,3 @@ class LiveRecorder:
 def _fsync_path(path: Path) -> None:
     with path.open("rb") as f:
         os.fsync(f.fileno())
-
-
-def manifest_live_info(directory: Path) -> dict[str, Any] | None:
-    """The ``live`` entry of a recording's manifest (None for a recording not made live)."""
-    data = json.loads((directory / "manifest.json").read_text(encoding="utf-8"))
-    return data.get("live")

@@ -371,12 +371,6 @@ class Builder:
                      paint, kind, skip=skip)
 
     # -- light ---------------------------------------------------------------------------
-    def static_faces_lit_by_sun(self) -> list[Face]:
-        """The static faces whose texels may be in a cast shadow (lit, facing the sun)."""
-        s = self.light.sun_dir
-        return [u.face for u in self._unbaked if u.static and u.lit and
-                (u.face.two_sided or float(u.face.normal @ s) > 0.0)]
-
     def finish(self, shadow: Callable[[Face, tuple[int, int]], np.ndarray | None]) -> None:
         """Bake the light into every texture: sky light, sunlight (Lambert) times the
         ``shadow(face, (height, width))`` lit fraction of each texel (None: all lit), then
