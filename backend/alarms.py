@@ -49,8 +49,9 @@ SEVERITY_RANK = {"caution": 0, "warning": 1, "alarm": 2}
 
 def approach_limit(limits: tuple[ApproachLimit, ...], distance_m: float
                    ) -> ApproachLimit | None:
-    """The row that applies at ``distance_m`` (the nearest band that contains it)."""
-    for row in sorted(limits, key=lambda r: r.within_m):
+    """The row that applies at ``distance_m`` (the nearest band that contains it); ``limits``
+    sorted by ``within_m``, as the book keeps them."""
+    for row in limits:
         if distance_m < row.within_m:
             return row
     return None

@@ -28,6 +28,7 @@ report, the page and the bridge outputs read them.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -84,7 +85,13 @@ class IntegrityConfig:
 
     def k(self, dof: int) -> float:
         """Multiple of σ that the error exceeds with probability ``integrity_risk``."""
-        return float(math.sqrt(chi2.ppf(1.0 - self.integrity_risk, dof)))
+        return _sigma_multiple(self.integrity_risk, dof)
+
+
+@functools.lru_cache(maxsize=16)
+def _sigma_multiple(risk: float, dof: int) -> float:
+    """√ of the χ² quantile (computed once: ``assess`` runs for every state)."""
+    return float(math.sqrt(chi2.ppf(1.0 - risk, dof)))
 
 
 @dataclass(frozen=True)

@@ -312,9 +312,10 @@ class Fusion:
                 self._pending.popleft()
 
     def _bridge_gap(self, t: float, gap: float) -> None:
-        """An IMU gap ending at ``t``: the INS coasts through it on the last sample (a ship's
-        motion is smooth), the waiting measurements applied at their times, its covariance
-        widened by what the gap left unmeasured."""
+        """An IMU gap ending at ``t``: the INS coasts through it on the raw samples' mean of
+        the last seconds (a ship's motion is smooth, the waves cancel), the waiting
+        measurements applied at their times, its covariance widened by what the gap left
+        unmeasured."""
         ekf = self.ekf
         assert ekf is not None and self._last_raw is not None and self._raw_mean is not None
         t_last = self._last_raw[0]

@@ -7,7 +7,9 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from recordings import DEFAULT_RECORDING
 
@@ -31,6 +33,11 @@ def _progress(quiet: bool):  # noqa: ANN202 - a callable or a no-op
     return (lambda _text: None) if quiet else show
 
 
+def _print(report: object, as_json: bool, as_text: Callable[[Any], str]) -> None:
+    """A report on stdout: strict JSON (``--json``) or its text tables."""
+    print(json.dumps(to_json(report), indent=2, allow_nan=False) if as_json else as_text(report))
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     if not args.report:
         raise ValueError("replay: add --report to run the thesis' experiments (the interactive "
@@ -39,8 +46,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     options = ReportOptions(init_s=args.init, end_s=args.end, plots_dir=args.plots,
                             tracking=not args.no_tracking)
     report = replay_report(path, options, _progress(args.quiet))
-    print(json.dumps(to_json(report), indent=2, allow_nan=False) if args.json
-          else format_replay_report(report))
+    _print(report, args.json, format_replay_report)
     return 0
 
 
@@ -68,8 +74,7 @@ def cmd_compass(args: argparse.Namespace) -> int:
     path = Path(args.recording) if args.recording else DEFAULT_RECORDING
     report = compass_report(path, trials=args.trials, gps_only=args.gps_only,
                             sky_mask_deg=args.sky_mask, as_json=args.json)
-    print(json.dumps(to_json(report), indent=2, allow_nan=False) if args.json
-          else format_compass_report(report))
+    _print(report, args.json, format_compass_report)
     return 0
 
 
@@ -95,8 +100,7 @@ def cmd_baseline(args: argparse.Namespace) -> int:
     report = baseline_report(args.base, args.rover, args.nav, as_json=args.json,
                              restart_every_s=args.restart_every,
                              base_position_llh_deg=base_pos, rover_position_llh_deg=rover_pos)
-    print(json.dumps(to_json(report), indent=2, allow_nan=False) if args.json
-          else format_baseline_report(report))
+    _print(report, args.json, format_baseline_report)
     return 0
 
 
