@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.frames import wrap_angle
 from recordings.format import Recording
 
 from .records import AlertRecord, IntegrityReport
 from .runs import FusionRun
-from .scoring import horizontal_std
+from .scoring import horizontal_std, run_errors
 
 
 def integrity_scores(rec: Recording, run: FusionRun, t0: float, t1: float) -> IntegrityReport:
@@ -28,9 +27,10 @@ def integrity_scores(rec: Recording, run: FusionRun, t0: float, t1: float) -> In
     out = IntegrityReport(alert_limit_m=al, heading_alert_limit_deg=hal, epochs=epochs,
                           available_fraction=0.0, misleading_epochs=0, hazardous_epochs=0)
     out.alerts = [AlertRecord(a.t - start, a.kind, a.message, a.active) for a in run.alerts]
-    if rec.reference is None or run.origin_time is None:
+    err = None if rec.reference is None else run_errors(run, rec.reference, start, t0)
+    if err is None:
         return out
-    origin = rec.reference.interpolate(run.origin_time)[0]
+    horizontal, heading = _horizontal_heading(err.position, err.heading)
     trusted_err, ratios = [], []
     for k, s in states:
         integ = s.status.integrity
@@ -38,11 +38,8 @@ def integrity_scores(rec: Recording, run: FusionRun, t0: float, t1: float) -> In
         out.modes[mode] = out.modes.get(mode, 0) + 1
         if integ is None or not integ.trusted or not np.isfinite(run.position[k]).all():
             continue
-        ref_pos, _v, ref_eul = rec.reference.interpolate(run.time[k])
-        e = run.position[k] - (ref_pos - origin)
-        h = float(np.hypot(e[0], e[1]))
-        hdg = abs(float(np.degrees(wrap_angle(run.euler[k, 2] - ref_eul[2]))))
-        trusted_err.append(e)
+        h, hdg = horizontal[k], heading[k]
+        trusted_err.append(err.position[k])
         ratios.append(h / integ.hpl_m)
         misled_h, misled_hdg = h > integ.hpl_m, hdg > integ.heading_pl_deg
         out.misleading_epochs += int(misled_h or misled_hdg)
@@ -61,17 +58,24 @@ def stanford_points(rec: Recording, run: FusionRun, t0: float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(true horizontal error, HPL, trusted) of every frame with a state in the window: the
     Stanford diagram's points."""
-    if rec.reference is None or run.origin_time is None:
+    err = None if rec.reference is None else \
+        run_errors(run, rec.reference, float(rec.manifest.start_gpst), t0)
+    if err is None:
         return np.zeros(0), np.zeros(0), np.zeros(0, bool)
-    origin = rec.reference.interpolate(run.origin_time)[0]
-    err, pl, ok = [], [], []
+    horizontal, _ = _horizontal_heading(err.position, err.heading)
+    err_m, pl, ok = [], [], []
     for k, s in enumerate(run.states):
         integ = None if s is None else s.status.integrity
         if integ is None or integ.hpl_m is None or run.time[k] < t0 - 1e-6 \
                 or not np.isfinite(run.position[k]).all():
             continue
-        e = run.position[k] - (rec.reference.interpolate(run.time[k])[0] - origin)
-        err.append(float(np.hypot(e[0], e[1])))
+        err_m.append(float(horizontal[k]))
         pl.append(integ.hpl_m)
         ok.append(integ.trusted)
-    return np.array(err), np.array(pl), np.array(ok, bool)
+    return np.array(err_m), np.array(pl), np.array(ok, bool)
+
+
+def _horizontal_heading(position: np.ndarray, heading: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal error (m) and absolute heading error (deg) per frame."""
+    return np.hypot(position[:, 0], position[:, 1]), np.abs(np.degrees(heading))
