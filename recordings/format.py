@@ -8,8 +8,10 @@ shown by ``summary``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import os
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -548,10 +550,19 @@ def _data_lines(path: Path, columns: Sequence[str]) -> tuple[list[str], np.ndarr
     return [lines[i] for i in numbers], np.array(numbers, dtype=int) + 1
 
 
-def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-    """(data (N,k) float64, line numbers (N,)) of an all-numeric CSV; every value finite."""
+def _read_numeric_csv(path: Path, columns: Sequence[str], torn: list[str] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(data (N,k) float64, line numbers (N,)) of an all-numeric CSV; every value finite.
+
+    With ``torn`` (a list for notes), a last line cut short by a power loss is dropped and
+    noted there: files written live end every record with a newline, so an unterminated last
+    line that does not parse, or has fewer decimals than the line before, is a torn write."""
     body, line_no = _data_lines(path, columns)
     k = len(columns)
+    if torn is not None and body and _is_torn(path, body, k):
+        torn.append(f"{path.name}: the last line ({line_no[-1]}) was cut short (a power loss "
+                    "while recording?) and is left out")
+        body, line_no = body[:-1], line_no[:-1]
     if not body:
         return np.empty((0, k)), line_no
     try:
@@ -567,6 +578,30 @@ def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[np.ndarray, n
         raise RecordingError(f"{path}: line {line_no[row]}: {columns[col]} is "
                              f"{data[row, col]} (NaN/inf not allowed)")
     return data, line_no
+
+
+def _is_torn(path: Path, body: list[str], k: int) -> bool:
+    with path.open("rb") as f:
+        f.seek(-1, os.SEEK_END)
+        if f.read(1) in (b"\n", b"\r"):
+            return False
+    last = body[-1].split(",")
+    if len(last) != k:
+        return True
+    try:
+        [float(v) for v in last]
+    except ValueError:
+        return True
+    if len(body) < 2:
+        return False
+    before = body[-2].split(",")
+    return len(before) == k and any(_decimals(a) < _decimals(b)
+                                    for a, b in zip(last, before, strict=True))
+
+
+def _decimals(field: str) -> int:
+    head, dot, tail = field.strip().partition(".")
+    return len(tail) if dot else 0
 
 
 def _raise_bad_line(path: Path, body: list[str], line_no: np.ndarray,
@@ -609,13 +644,13 @@ def _check_span(path: Path, t: np.ndarray, manifest: Manifest, what: str) -> Non
             "seconds since 1980-01-06")
 
 
-def _read_imu(path: Path) -> tuple[ImuData, list[str]]:
+def _read_imu(path: Path, cut_short: bool = False) -> tuple[ImuData, list[str]]:
     """The IMU samples as logged. Time tags that do not increase are kept (a logger's clock
     can step back): the engine drops such samples and says so; the load notes them."""
-    data, line_no = _read_numeric_csv(path, IMU_COLUMNS)
+    notes: list[str] = []
+    data, line_no = _read_numeric_csv(path, IMU_COLUMNS, notes if cut_short else None)
     if len(data) < 2:
         raise RecordingError(f"{path}: needs at least 2 samples, has {len(data)}")
-    notes = []
     back = np.flatnonzero(np.diff(data[:, 0]) <= 0)
     if len(back):
         k = back[0] + 1
@@ -626,8 +661,8 @@ def _read_imu(path: Path) -> tuple[ImuData, list[str]]:
                    accel=data[:, 4:7].copy()), notes
 
 
-def _read_frame_times(path: Path) -> np.ndarray:
-    data, line_no = _read_numeric_csv(path, FRAME_COLUMNS)
+def _read_frame_times(path: Path, torn: list[str] | None) -> np.ndarray:
+    data, line_no = _read_numeric_csv(path, FRAME_COLUMNS, torn)
     if len(data) == 0:
         raise RecordingError(f"{path}: no frames")
     expected = np.arange(len(data))
@@ -712,8 +747,9 @@ def _rinex_call(path: Path, func: Callable[..., T], *args: Any) -> T:
         raise RecordingError(msg) from exc
 
 
-def _load_gnss(root: Path, manifest: Manifest, manifest_path: Path,
-               calibration: Calibration) -> tuple[list[list[GnssEpoch]], list[ObsHeader]]:
+def _load_gnss(root: Path, manifest: Manifest, manifest_path: Path, calibration: Calibration,
+               torn: list[str] | None = None
+               ) -> tuple[list[list[GnssEpoch]], list[ObsHeader]]:
     obs_files = manifest.files["gnss_obs"]
     n_ant = len(calibration.antennas_body)
     if len(obs_files) != n_ant:
@@ -724,7 +760,9 @@ def _load_gnss(root: Path, manifest: Manifest, manifest_path: Path,
     headers: list[ObsHeader] = []
     for rel in obs_files:
         path = root / rel
-        obs = _rinex_call(path, rinex.read_obs, path)
+        obs = _rinex_call(path, rinex.read_obs, path, torn is not None)
+        if torn is not None and obs.cut_short:
+            torn.append(f"{rel}: {obs.cut_short}")
         epochs = _rinex_call(path, rinex.l1_epochs, obs)
         if epochs and not any(e.satellites for e in epochs):
             types = "; ".join(f"{sys}: {' '.join(codes)}"
@@ -768,12 +806,18 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
     calibration = _parse_calibration(root / files["calibration"])
     hull = _parse_hull(root / files["hull"])
     notes: list[str] = []
+    # a live recording that did not end cleanly (power loss): its last records may be torn
+    torn = notes if _cut_short(manifest) else None
 
     frames_path = root / files["frame_times"]
-    frame_times = _read_frame_times(frames_path)
+    frame_times = _read_frame_times(frames_path, torn)
     _check_span(frames_path, frame_times, manifest, "frame times")
     video_path = root / files["video"]
     video = _probe_video(video_path)
+    if torn is not None and _torn_jpeg(video_path):
+        torn.append(f"{files['video']}: the last frame was cut short and is left out")
+        video = dataclasses.replace(video, frame_count=video.frame_count - 1)
+        frame_times = frame_times[:video.frame_count]
     cam = calibration.camera
     if (video.width, video.height) != (cam.width, cam.height):
         raise RecordingError(f"{video_path}: frame size {video.width}x{video.height} does not "
@@ -784,7 +828,7 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
                      f"{files['frame_times']} lists {len(frame_times)}")
 
     imu_path = root / files["imu"]
-    imu, imu_notes = _read_imu(imu_path)
+    imu, imu_notes = _read_imu(imu_path, torn is not None)
     notes += imu_notes
     _check_span(imu_path, imu.time, manifest, "IMU samples")
     gaps = imu_gaps(imu.time)
@@ -795,7 +839,7 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
                                     files["frame_times"]: float(frame_times[-1])})
 
     if load_gnss:
-        gnss, headers = _load_gnss(root, manifest, manifest_path, calibration)
+        gnss, headers = _load_gnss(root, manifest, manifest_path, calibration, torn)
         if len(gnss) != COMPASS_RECEIVERS:
             notes.append(f"{len(gnss)} receivers: the GNSS compass needs {COMPASS_RECEIVERS} "
                          "for its own attitude fix (the fusion then starts from the course "
@@ -820,6 +864,21 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
                      frame_times=frame_times, gnss=gnss, gnss_headers=headers, nav=nav,
                      reference=reference, scene_points=points, scene_point_kinds=kinds,
                      video_info=video, gnss_loaded=load_gnss, warnings=notes)
+
+
+def _cut_short(manifest: Manifest) -> bool:
+    live = manifest.extra.get("live")
+    return isinstance(live, dict) and live.get("complete") is False
+
+
+def _torn_jpeg(path: Path) -> bool:
+    """A raw MJPEG video whose last JPEG lacks its end-of-image marker."""
+    if path.suffix.lower() not in (".mjpeg", ".mjpg"):
+        return False
+    with path.open("rb") as f:
+        f.seek(max(0, path.stat().st_size - 64))
+        tail = f.read()
+    return not tail.rstrip(b"\r\n\x00 ").endswith(b"\xff\xd9")  # padding after EOI is fine
 
 
 def _early_ends(manifest: Manifest, last: dict[str, float]) -> list[str]:

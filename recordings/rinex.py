@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import gzip
 import math
+import os
 import warnings
 import zlib
 from collections.abc import Sequence
@@ -141,6 +142,7 @@ class ObsFile:
     header: ObsHeader
     epochs: list[RawEpoch]  # observation epochs (flags 0 and 1) in file order
     events: list[ObsEvent] = field(default_factory=list)
+    cut_short: str | None = None  # read_obs(cut_ok=True): what was left out of a torn end
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -434,7 +436,7 @@ def _apply_event_records(path: str, header: ObsHeader, start: int, records: list
                                           "(not supported)")
 
 
-def read_obs(path: str | Path) -> ObsFile:
+def read_obs(path: str | Path, cut_ok: bool = False) -> ObsFile:
     """Read a RINEX observation file (3.02-3.05 or 2.10-2.11, any constellations; gzipped
     and/or Hatanaka-compressed or not).
 
@@ -442,10 +444,18 @@ def read_obs(path: str | Path) -> ObsFile:
     event records (flags 2-6) are kept in ``events`` with their special records, and comments
     among them are appended to the header's. Epoch times are converted to GPST from the
     header's time system. RINEX 2 observation types appear under their RINEX 3 codes.
+
+    ``cut_ok``: the file may end torn (written live, then the power went): an unterminated
+    last line and an epoch with fewer records than it announces are left out, and said in
+    ``cut_short``, instead of being an error.
     """
     p = Path(path)
     name = str(p)
     lines = _lines(p)
+    cut_short = None
+    if cut_ok and lines and not _ends_with_newline(p):
+        cut_short = f"the last line ({len(lines)}) was cut short and is left out"
+        lines = lines[:-1]
     if _check_first_line(name, lines, "O", "observation", versions=(2, 3)) < 3.0:
         return _read_obs_v2(name, lines)
     header, i = _parse_obs_header(name, lines)
@@ -491,6 +501,10 @@ def read_obs(path: str | Path) -> ObsFile:
             time = base + sec
 
         if n_lines - (i + 1) < count:
+            if cut_ok:
+                cut_short = (f"the epoch of line {n} was cut short ({n_lines - i - 1} of its "
+                             f"{count} records) and is left out")
+                break
             raise _error(name, n_lines, f"file ends inside the epoch of line {n}: it announces "
                                         f"{count} records, only {n_lines - i - 1} follow")
         block = lines[i + 1:i + 1 + count]
@@ -515,7 +529,13 @@ def read_obs(path: str | Path) -> ObsFile:
             events.append(ObsEvent(time=time, flag=flag, line=n, records=list(block)))
         i += 1 + count
 
-    return ObsFile(path=name, header=header, epochs=epochs, events=events)
+    return ObsFile(path=name, header=header, epochs=epochs, events=events, cut_short=cut_short)
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with path.open("rb") as f:
+        f.seek(-1, os.SEEK_END)
+        return f.read(1) in (b"\n", b"\r")
 
 
 # ------------------------------------------------------------------ RINEX 2 observations
