@@ -5,17 +5,21 @@ A live session differs from a replay only in where the sensor messages come from
 on GNSS time) instead of ``engine.messages.sensor_messages(recording)``. :class:`LiveRunner`
 takes the replayer's place in the session: it runs ``engine.driver.dispatch`` on every
 message in one thread and hands each frame to the session; a second thread takes the messages
-from the source and writes the recording as they come (``live.recorder.LiveRecorder``), so the
-recording never waits for the engine. An engine slower than the sensors skips video frames
-(never IMU or GNSS) once more than ``MAX_QUEUED_FRAMES`` wait, and says how many. There is
-nothing to pause or seek in a live feed: those controls are refused (the recording written live
-replays with them).
+from the source and queues them for the engine and for a third thread, which writes the
+recording (``live.recorder.LiveRecorder``): the recording never waits for the engine, and the
+engine never waits for the disk (an ``fsync`` a second). An engine slower than the sensors
+skips video frames (never IMU or GNSS) once more than ``MAX_QUEUED_FRAMES`` wait, and says how
+many: the officer sees a picture at most that old, not a growing lag. There is nothing to pause
+or seek in a live feed: those controls are refused (the recording written live replays with
+them).
 """
 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
+import queue
 import threading
 import time
 from datetime import UTC, datetime
@@ -50,7 +54,8 @@ from .sessions import Session, SessionManager
 log = logging.getLogger(__name__)
 
 FIRST_MESSAGE_TIMEOUT_S = 30.0
-MAX_QUEUED_FRAMES = 10  # 1 s of video at 10 fps: beyond, the engine skips frames to keep up
+MAX_QUEUED_FRAMES = 4  # 0.4 s of video at 10 fps: beyond, the engine skips frames to keep up
+MAX_UNWRITTEN = 1200  # ~11 s of messages (~190 MB of frames) waiting for a stalled disk
 
 
 class LiveRunner:
@@ -77,15 +82,20 @@ class LiveRunner:
         self._arrived = threading.Condition(self._lock)
         self.skipped_frames = 0  # frames the engine skipped to keep up with the sensors
         self.recording_error: str | None = None
+        self._to_record: queue.SimpleQueue[tuple[Any, NavigationData | None] | None] = \
+            queue.SimpleQueue()
+        self._nav_count = -1
         self._thread = threading.Thread(target=self._run, name="live-session", daemon=True)
-        self._pump = threading.Thread(target=self._take_messages, name="live-recorder",
+        self._pump = threading.Thread(target=self._take_messages, name="live-source",
                                       daemon=True)
+        self._writer = threading.Thread(target=self._record, name="live-recorder", daemon=True)
 
     # ------------------------------------------------------------------ control
 
     def start(self, paused: bool = False) -> None:
         if self.recorder is not None:
-            self.recorder.write(self._first, self.source.nav, {})
+            self._to_record.put((self._first, self._nav_if_new()))
+            self._writer.start()
         self._pump.start()
         self._thread.start()
 
@@ -111,6 +121,9 @@ class LiveRunner:
         for thread in (self._thread, self._pump):
             if thread.is_alive() and threading.current_thread() is not thread:
                 thread.join(timeout)
+        self._to_record.put(None)  # after what the source gave: the recording is complete
+        if self._writer.is_alive():
+            self._writer.join(timeout)
         self.source.close()
         if self.recorder is not None:
             try:
@@ -162,21 +175,48 @@ class LiveRunner:
                 return
 
     def _take_messages(self) -> None:
-        """The sensors' messages as they come: into the recording, then queued for the engine."""
+        """The sensors' messages as they come: queued for the engine and for the recording."""
         while not self._stop.is_set():
             msg = self.source.next(0.2)
             if msg is None:
                 continue
-            if self.recorder is not None:
-                try:
-                    self.recorder.write(msg, self.source.nav, {})
-                except OSError as exc:  # a full disk must not stop the navigation
-                    log.exception("writing the live recording failed")
-                    self.recording_error = f"writing the recording failed: {exc}"
             with self._arrived:
                 self._queue.append(msg)
                 self._queued_frames += isinstance(msg, FrameMessage)
                 self._arrived.notify()
+            if self.recorder is not None and self.recording_error is None:
+                if self._to_record.qsize() > MAX_UNWRITTEN:
+                    self.recording_error = (f"the disk cannot keep up: more than "
+                                            f"{MAX_UNWRITTEN} messages waited to be written")
+                    log.error("live recording stopped: %s", self.recording_error)
+                    continue
+                self._to_record.put((msg, self._nav_if_new()))
+
+    def _nav_if_new(self) -> NavigationData | None:
+        """A copy of the ephemerides when the source has assembled new ones (the source's own
+        object changes in its thread while the recorder writes)."""
+        nav = self.source.nav
+        count = sum(len(v) for v in nav.ephemerides.values())
+        if count == self._nav_count:
+            return None
+        self._nav_count = count
+        return dataclasses.replace(nav, ephemerides={s: list(v)
+                                                     for s, v in nav.ephemerides.items()})
+
+    def _record(self) -> None:
+        """The recorder's thread: writes what the source gave, in order, until told to end."""
+        assert self.recorder is not None
+        nav = NavigationData()
+        while (item := self._to_record.get()) is not None:
+            msg, new_nav = item
+            nav = new_nav or nav
+            if self.recording_error is not None:
+                continue  # the disk failed: the navigation goes on, the page says so
+            try:
+                self.recorder.write(msg, nav, {})
+            except Exception as exc:  # noqa: BLE001 - a full disk must not stop the navigation
+                log.exception("writing the live recording failed")
+                self.recording_error = f"writing the recording failed: {exc!r}"
 
     def _next_for_engine(self) -> Any:
         """The next message for the engine (None once stopped); video frames are skipped while

@@ -41,6 +41,7 @@ class FrameMessage:
     t: float
     index: int
     image: np.ndarray  # BGR
+    jpeg: bytes | None = None  # the camera's own JPEG when it sent one (recorded as is)
 
 
 SensorMessage = ImuMessage | GnssMessage | FrameMessage

@@ -195,7 +195,7 @@ class CameraSource:
                 image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
                 if image is None:
                     continue  # a corrupt part: skipped (the integrity layer sees the gap)
-                yield FrameMessage(t, index, image)
+                yield FrameMessage(t, index, image, jpeg)
                 index += 1
                 self.frames_read = index
         finally:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
@@ -38,6 +39,9 @@ class MjpegServer:
         self._done = False
         self._stop = threading.Event()
         self.frames_sent = 0
+        # (gpst, Unix time) of each frame when it became the camera's newest: what a latency
+        # benchmark measures from (the last hour's at 10 fps)
+        self.published: deque[tuple[float, float]] = deque(maxlen=36_000)
         self.clients = 0  # connections to the stream so far
         # A shared playback clock (the emulator's): frame time t is due at
         # clock_start + (t - clock_t0) / speed (monotonic s). None: from the first frame.
@@ -118,6 +122,7 @@ class MjpegServer:
                 return
             with self._cond:
                 self._latest = (index, t, jpeg.tobytes())
+                self.published.append((t, time.time()))
                 self._cond.notify_all()
         with self._cond:
             self._done = True

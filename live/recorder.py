@@ -108,10 +108,14 @@ class LiveRecorder:
                 if epoch is not None:
                     self._write_epoch(i, epoch, glonass_slots or {})
         elif isinstance(msg, FrameMessage):
-            ok, jpeg = cv2.imencode(".jpg", msg.image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-            if not ok:
-                raise RuntimeError(f"frame {self.frames}: JPEG encoding failed")
-            self._video.write(jpeg.tobytes())
+            jpeg = msg.jpeg  # an MJPEG camera's frame is kept as it came, not re-encoded
+            if jpeg is None:
+                ok, encoded = cv2.imencode(".jpg", msg.image,
+                                           [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+                if not ok:
+                    raise RuntimeError(f"frame {self.frames}: JPEG encoding failed")
+                jpeg = encoded.tobytes()
+            self._video.write(jpeg)
             self._video.flush()
             self._frames_csv.write(f"{self.frames},{msg.t:.6f}\n")
             self._frames_csv.flush()

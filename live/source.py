@@ -14,7 +14,7 @@ equal times. :class:`TimeAligner` does the merging:
 - **Watermarks.** A message is released when no stream can still deliver an earlier one: each
   stream delivers in time order, so a stream whose latest message is at or after time t has
   nothing before t to come; the receivers, which tag epochs on a known grid, have nothing
-  before their latest epoch + half an epoch interval.
+  before their latest epoch + one epoch interval − ``RECEIVER_GRID_SLACK_S``.
 - **A stream that stops or lags is a fault, not a hang.** A message never waits more than
   ``max_lag_s`` (wall time) for a silent stream: the stream is then marked lagging and not
   waited for until it speaks again; what it delivers later than the merge has got is dropped
@@ -53,6 +53,10 @@ __all__ = ["GnssClock", "StreamHealth", "TimeAligner", "LiveSource"]
 
 log = logging.getLogger(__name__)
 
+# Receivers tag epochs on their measurement grid to within milliseconds, so nothing earlier
+# than the next grid time minus this can still come from one (half an interval made a frame
+# just after an epoch's midpoint wait up to 0.5 s for the next epoch)
+RECEIVER_GRID_SLACK_S = 0.1
 RECONNECT_S = 1.0  # a stopped device is reopened this often
 UNTIMED_FRAMES_KEPT_S = 5.0  # frames wait this long for the first GNSS epoch to time them
 _IMU, _GNSS, _FRAME = 0, 1, 2
@@ -240,7 +244,7 @@ class TimeAligner:
                     continue
                 return
             self._untimed.popleft()
-            timed = FrameMessage(t, frame.index, frame.image)
+            timed = FrameMessage(t, frame.index, frame.image, frame.jpeg)
             self._accept("camera", t, _FRAME, self.health["camera"],
                          lambda timed=timed, arrival=arrival: self._frames.append((timed,
                                                                                    arrival)))
@@ -274,7 +278,7 @@ class TimeAligner:
         """No message of ``stream`` earlier than this can still come (gpst)."""
         last = self._last[stream]
         if stream.startswith("rx"):
-            return last + 0.5 * self._interval
+            return last + self._interval - min(RECEIVER_GRID_SLACK_S, 0.5 * self._interval)
         return last
 
     def _gnss_head(self) -> tuple[float, list[GnssEpoch | None], float] | None:
