@@ -310,6 +310,10 @@ class SessionStatus(BaseModel):
     timing_ms: dict[str, float] = Field(description="engine milliseconds per call by stage")
     checkpoints_s: list[float] = Field(description="cached engine copies for backward seeks")
     checkpoint_note: str | None
+    scouted_s: float | None = Field(
+        default=None, description="how far the look-ahead engine has run (s since the start): "
+                                  "a seek up to here fast-forwards at most 2 s of recording; "
+                                  "None without one (live, checkpoints off)")
     prediction_seconds: int
     options: dict[str, Any]
     has_reference: bool
@@ -562,6 +566,11 @@ class ViewerFollow(Strict):
     session: str = Field(max_length=64)
 
 
+class ViewerTheme(Strict):
+    theme: Literal["day", "night"] = Field(description="the 3-D view's colours (one view for "
+                                                       "every page: the last switch sets it)")
+
+
 class ServerInfo(BaseModel):
     name: str
     version: str
@@ -671,6 +680,8 @@ class ReplayBrief(BaseModel):
     lag_s: float
     behind_s: float = Field(0.0, description="recording seconds the replay fell behind real "
                                              "time since it last started playing")
+    scouted_s: float | None = Field(None, description="how far the look-ahead engine has run: "
+                                                      "seeks up to here are quick")
 
 
 class StreamFrameHeader(BaseModel):

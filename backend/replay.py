@@ -9,11 +9,20 @@ speed or as fast as possible, with play / pause / seek / speed. Every processed 
 to a ``FrameSink`` together with whether it is *live* (shown to clients) or part of a seek.
 
 Seek: forward = fast-forward from the current position (the estimator is causal, so this is
-exactly what a restart would compute); backward = restore the nearest cached checkpoint at or
+exactly what a restart would compute); backward = restore the nearest cached checkpoint
 before the target (a deep copy of the engine taken every ``checkpoint_interval_s`` of
 recording time, ~10 ms for the real engine) and fast-forward from there, or restart from the
 start when there is none (the target precedes the first checkpoint, or the engine cannot be
 copied). Frames computed while seeking are not sent to clients.
+
+The scout (``scout=True``): a second engine runs through the whole recording ahead of the
+replay, in its own thread, whenever the replay leaves it room (paused, ended, or playing at
+its pace without falling behind; never while the replay seeks or runs flat out). It leaves an
+engine copy every ``SCOUT_INTERVAL_S`` and the state of every frame. A seek anywhere the scout
+has been — forward or backward — then restores the scout's copy nearest before the target and
+fast-forwards at most ``SCOUT_INTERVAL_S`` of recording; the states of the frames a forward
+seek jumps over come from the scout (``FrameSink.on_history``), so the history has no gap.
+The same engine on the same messages computes the same states: the copies are exact.
 """
 
 from __future__ import annotations
@@ -37,6 +46,10 @@ from recordings.format import Recording
 log = logging.getLogger(__name__)
 
 MAX_LAG_S = 0.5  # when the engine falls further behind real time, the clock is re-anchored
+SCOUT_INTERVAL_S = 2.0  # recording s between the scout's engine copies: ~1 s of fast-forward
+SCOUT_MAX_CHECKPOINTS = 48  # ~4 MB each (the real engine); beyond, every other copy goes
+#                             and the interval doubles
+SCOUT_LAG_S = 0.1  # the scout pauses while the replay is later than this on its clock
 
 
 def snapshot(engine: FusionEngine, shared: tuple[Any, ...] = ()) -> FusionEngine:
@@ -99,11 +112,108 @@ class FrameSink(Protocol):
 
     def on_state(self, state: ReplayState) -> None: ...
 
+    def on_history(self, states: list[tuple[float, Any]]) -> None:
+        """(gpst, state) of frames a forward seek jumped over (computed by the scout), in
+        time order, before the ``on_rewind`` to where the replay resumes."""
+
 
 @dataclass
 class _Checkpoint:
     t: float  # gpst of the frame after which the engine was copied
     engine: FusionEngine
+
+
+class Scout:
+    """A second engine run through the recording ahead of the replay (module docstring).
+
+    ``busy()`` says when the replay needs the processor: the scout then waits."""
+
+    def __init__(self, rec: Recording, make_engine: Callable[[], FusionEngine],
+                 busy: Callable[[], bool], shared: tuple[Any, ...] = (),
+                 interval_s: float = SCOUT_INTERVAL_S,
+                 max_checkpoints: int = SCOUT_MAX_CHECKPOINTS,
+                 progress: Callable[[], None] | None = None) -> None:
+        self.rec = rec
+        self._make_engine = make_engine
+        self._busy = busy
+        self._progress = progress  # called after each copy and at the end (clients are told)
+        self._shared = shared
+        self.interval_s = interval_s
+        self._max_checkpoints = max_checkpoints
+        self._lock = threading.Lock()
+        self._checkpoints: list[_Checkpoint] = []
+        self._states: list[tuple[float, Any]] = []  # (gpst, state) of every frame with one
+        self.frontier = float(rec.manifest.start_gpst)  # gpst of the last message run
+        self.done = False
+        self.error: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"scout-{rec.manifest.name}",
+                                        daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float | None = 5.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+        with self._lock:
+            self._checkpoints, self._states = [], []
+
+    def checkpoint(self, t: float) -> _Checkpoint | None:
+        """The newest engine copy from before gpst ``t`` (a copy is taken after its frame:
+        a seek to that very frame must start earlier to show it)."""
+        with self._lock:
+            usable = [c for c in self._checkpoints if c.t < t]
+            return usable[-1] if usable else None
+
+    def states(self, after: float, until: float) -> list[tuple[float, Any]]:
+        """(gpst, state) of the frames in (after, until]."""
+        with self._lock:
+            return [(t, s) for t, s in self._states if after < t <= until]
+
+    def _tell(self) -> None:
+        if self._progress is not None:
+            try:
+                self._progress()
+            except Exception:  # telling the clients is a courtesy: the scout goes on
+                log.exception("scout progress callback failed")
+
+    def _run(self) -> None:
+        messages: Iterator[SensorMessage] = iter(())
+        try:
+            engine = self._make_engine()
+            messages = sensor_messages(self.rec)
+            last = float(self.rec.manifest.start_gpst)
+            for msg in messages:
+                while self._busy():
+                    if self._stop.wait(0.05):
+                        return
+                if self._stop.is_set():
+                    return
+                fused = dispatch(engine, msg)
+                with self._lock:
+                    self.frontier = msg.t
+                    if isinstance(msg, FrameMessage) and fused is not None:
+                        self._states.append((msg.t, copy.deepcopy(fused)))
+                if isinstance(msg, FrameMessage) and msg.t - last >= self.interval_s:
+                    copied = snapshot(engine, self._shared)
+                    last = msg.t
+                    with self._lock:
+                        self._checkpoints.append(_Checkpoint(msg.t, copied))
+                        if len(self._checkpoints) > self._max_checkpoints:
+                            del self._checkpoints[1::2]
+                            self.interval_s *= 2
+                    self._tell()
+            self.done = True
+            self._tell()
+        except Exception as exc:  # noqa: BLE001 - the replay goes on without look-ahead
+            log.exception("the scout stopped")
+            self.error = f"the look-ahead engine stopped: {exc!r}"
+        finally:
+            close = getattr(messages, "close", None)
+            if close is not None:
+                close()
 
 
 @dataclass
@@ -123,7 +233,8 @@ class Replayer:
 
     def __init__(self, rec: Recording, make_engine: Callable[[], FusionEngine], sink: FrameSink,
                  speed: float | None = 1.0, checkpoint_interval_s: float | None = 10.0,
-                 max_checkpoints: int = 20, shared: tuple[Any, ...] = ()) -> None:
+                 max_checkpoints: int = 20, shared: tuple[Any, ...] = (),
+                 scout: bool = False) -> None:
         self.rec = rec
         self._shared = shared  # engine inputs a snapshot shares instead of copying
         self._make_engine = make_engine
@@ -146,6 +257,20 @@ class Replayer:
         self._checkpoint_note: str | None = None
         self._thread = threading.Thread(target=self._run, name=f"replay-{rec.manifest.name}",
                                         daemon=True)
+        self.scout = Scout(rec, make_engine, self._needs_processor, shared,
+                           progress=lambda: self._sink.on_state(self._state)) if scout else None
+
+    def _needs_processor(self) -> bool:
+        """Whether the replay wants the processor now (the scout waits): seeking, running
+        flat out, or later than ``SCOUT_LAG_S`` on its clock."""
+        with self._cond:
+            if self._stop:
+                return False
+            if self._state in (ReplayState.SEEKING, ReplayState.STARTING):
+                return True
+            if self._state != ReplayState.PLAYING or not self._playing:
+                return False
+            return self._speed is None or self._lag > SCOUT_LAG_S
 
     # ------------------------------------------------------------------ control (any thread)
 
@@ -155,6 +280,8 @@ class Replayer:
         if paused:
             self._seek_to = float(self.rec.manifest.start_gpst)
         self._thread.start()
+        if self.scout is not None:
+            self.scout.start()
 
     def play(self) -> bool:
         """Play on. At the end of the recording nothing changes and False is returned: playing
@@ -191,6 +318,8 @@ class Replayer:
         with self._cond:
             self._stop = True
             self._cond.notify_all()
+        if self.scout is not None:
+            self.scout.stop(timeout)
         if self._thread.is_alive() and threading.current_thread() is not self._thread:
             self._thread.join(timeout)
 
@@ -210,6 +339,8 @@ class Replayer:
                 "error": self._error,
                 "checkpoints": [c.t for c in self._checkpoints],
                 "checkpoint_note": self._checkpoint_note,
+                "scouted_gpst": None if self.scout is None else self.scout.frontier,
+                "scout_error": None if self.scout is None else self.scout.error,
             }
 
     @property
@@ -218,12 +349,20 @@ class Replayer:
 
     # ---------------------------------------------------------------- replay thread
 
+    def _scout_jump(self, goal: float) -> bool:
+        """Whether a forward seek to ``goal`` is quicker from a scout's copy than onward."""
+        cp = None if self.scout is None else self.scout.checkpoint(goal)
+        return cp is not None and cp.t > self._t + SCOUT_INTERVAL_S
+
     def _restart(self, target: float) -> tuple[FusionEngine, Iterator[SensorMessage]]:
         """Engine and message iterator positioned before ``target`` (gpst): from the newest
-        checkpoint at or before it, else from the start."""
+        checkpoint (the replay's or the scout's) before it, else from the start."""
         with self._cond:
-            usable = [c for c in self._checkpoints if c.t <= target]
+            usable = [c for c in self._checkpoints if c.t < target]  # (as Scout.checkpoint)
             self._checkpoints = usable
+        scouted = None if self.scout is None else self.scout.checkpoint(target)
+        if scouted is not None and (not usable or scouted.t > usable[-1].t):
+            usable = [*usable, scouted]
         if usable:
             cp = usable[-1]
             try:
@@ -231,6 +370,8 @@ class Replayer:
             except Exception as exc:  # a copy that worked once should work again; be safe
                 log.warning("checkpoint restore failed (%s); restarting from the start", exc)
             else:
+                if cp is scouted and cp.t > self._t and self.scout is not None:
+                    self._sink.on_history(self.scout.states(self._t, cp.t))  # jumped over
                 self._sink.on_rewind(cp.t)
                 with self._cond:
                     self._t = cp.t
@@ -246,6 +387,8 @@ class Replayer:
     def _maybe_checkpoint(self, engine: FusionEngine, t: float) -> None:
         if self._checkpoint_interval is None or self._checkpoint_note is not None:
             return
+        if self.scout is not None and self.scout.frontier >= t:
+            return  # the scout has been here, with denser copies
         last = self._checkpoints[-1].t if self._checkpoints else self.rec.manifest.start_gpst
         if t - last < self._checkpoint_interval:
             return
@@ -370,7 +513,7 @@ class Replayer:
                 goal, self._seek_to = self._seek_to, None
                 self._seek_goal = goal
                 restart = (goal < self._t or loop.engine is None
-                           or self._state == ReplayState.ERROR)
+                           or self._state == ReplayState.ERROR or self._scout_jump(goal))
                 self._error = None
                 self._state = ReplayState.SEEKING
             elif loop.target is not None:

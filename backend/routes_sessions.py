@@ -74,7 +74,9 @@ def delete_session(session: SessionDep, manager: ManagerDep) -> Response:
 def control_session(body: ControlRequest, session: SessionDep) -> SessionStatus:
     """``seek`` restarts the engine from the nearest cached checkpoint before ``time`` (or from
     the start) and runs it as fast as possible up to ``time`` without sending frames; a seek
-    forward fast-forwards from the current position. The state is ``seeking`` meanwhile.
+    forward fast-forwards from the current position, or jumps to a copy the look-ahead engine
+    left on its way (``scouted_s`` says how far it got: up to there a seek fast-forwards at
+    most 2 s of recording). The state is ``seeking`` meanwhile.
     ``play`` at the end of the recording is 409: nothing is thrown away unless the client
     seeks back (the history after the seek target is then recomputed). ``play`` after an
     error (state ``error``, the message in ``error``) restarts the engine from the newest

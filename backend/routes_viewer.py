@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request
 
 from .deps import ManagerDep, errors, get_viewer
 from .errors import Conflict
-from .models import Viewer, ViewerFollow
+from .models import Viewer, ViewerFollow, ViewerTheme
 
 router = APIRouter(prefix="/api/viewer", tags=["viewer"])
 
@@ -35,4 +35,14 @@ def follow_session(body: ViewerFollow, request: Request, manager: ManagerDep) ->
     if view is None:
         raise Conflict("the 3-D viewer is disabled")
     view.follow(session)
+    return _viewer(request)
+
+
+@router.put("/theme", response_model=Viewer, responses=errors(400, 409),
+            summary="Day or night colours in the 3-D view (the page's theme)")
+def set_theme(body: ViewerTheme, request: Request) -> Viewer:
+    view = get_viewer(request)
+    if view is None:
+        raise Conflict("the 3-D viewer is disabled")
+    view.set_theme(body.theme)
     return _viewer(request)

@@ -131,7 +131,7 @@ class Session:
         self.live = runner is not None
         self.replayer = runner(make_engine, self) if runner is not None else Replayer(
             rec, make_engine, self, speed=speed, checkpoint_interval_s=checkpoint_interval_s,
-            shared=(rec, rec.calibration, rec.nav))
+            shared=(rec, rec.calibration, rec.nav), scout=checkpoint_interval_s is not None)
 
     @property
     def end_gpst(self) -> float:
@@ -211,6 +211,10 @@ class Session:
             self.alarms.rewind()
             self._frames.clear()
 
+    def on_history(self, states: list[tuple[float, Any]]) -> None:
+        for t, state in states:  # the scout's own copies: nobody else holds them
+            self.history.append(t, state)
+
     def on_state(self, state: ReplayState) -> None:
         header = json.dumps({"type": "status", "session": self.status_brief()})
         self._publish((header.encode(), None))
@@ -280,7 +284,9 @@ class Session:
             "jpeg_bytes": len(jpeg),
             "replay": {"state": replay["state"], "speed": replay["speed"],
                        "lag_s": round(replay["lag_s"], 3),
-                       "behind_s": round(replay["behind_s"], 3)},
+                       "behind_s": round(replay["behind_s"], 3),
+                       "scouted_s": None if replay.get("scouted_gpst") is None
+                       else round(replay["scouted_gpst"] - self.start_gpst, 3)},
             "processed_at": result.processed_wall,
             "alarms": self.alarms.active(),
             "live": _live_brief(self.live_status()),
@@ -357,6 +363,8 @@ class Session:
             "timing_ms": {k: round(float(v), 3) for k, v in self.timing().items()},
             "checkpoints_s": [round(c - self.start_gpst, 3) for c in replay["checkpoints"]],
             "checkpoint_note": replay["checkpoint_note"],
+            "scouted_s": None if replay.get("scouted_gpst") is None
+            else round(replay["scouted_gpst"] - self.start_gpst, 3),
             "prediction_seconds": self.prediction_seconds,
             "options": self.options,
             "has_reference": self.rec.reference is not None,

@@ -3,6 +3,8 @@
 Scene (local-level NED at the world origin, near the berth, so float32 on the wire is at most
 a few hundred metres from zero; the scene's up direction is -z = up):
 
+Colours: ``PALETTES`` (day; night dimmed and warm, with viser's dark mode: ``set_theme``).
+
 * ``/reference`` grey: the reference trajectory, when the recording has one;
 * ``/fused/chunk_NNNN`` red: the fused trajectory in frozen chunks of ``CHUNK`` segments plus
   ``/fused/tail`` (the open chunk, re-sent while it grows): each update sends at most one
@@ -44,12 +46,17 @@ POINT_CHUNK = 2000  # new structure points per chunk before consolidation
 STRUCTURE_REFRESH_S = 20.0
 POSE_PERIOD_S = 0.1
 STRUCTURE_PERIOD_S = 1.0
-RED = (220, 30, 30)
-BLUE = (40, 90, 230)
-GREY = (150, 150, 150)
-HULL = (250, 200, 40)
-BERTH = (230, 40, 200)
-TARGET = (255, 140, 30)
+# Colours by theme. Night, as on bridge equipment: dark background, every colour dimmed and
+# warm (no white, no saturated green or blue), as the page's night palette.
+PALETTES: dict[str, dict[str, tuple[int, int, int]]] = {
+    "day": {"fused": (220, 30, 30), "structure": (40, 90, 230), "reference": (150, 150, 150),
+            "hull": (250, 200, 40), "berth": (230, 40, 200), "target": (255, 140, 30),
+            "camera": (20, 20, 20), "grid_cell": (60, 160, 60), "grid_section": (30, 120, 30)},
+    "night": {"fused": (150, 40, 20), "structure": (90, 70, 90), "reference": (80, 60, 50),
+              "hull": (140, 100, 30), "berth": (130, 40, 90), "target": (160, 80, 20),
+              "camera": (90, 50, 30), "grid_cell": (60, 40, 20), "grid_section": (80, 50, 20)},
+}
+NIGHT_BRAND = (120, 40, 10)
 BERTH_FENCE_M = 1.5  # the berth line's fence: this high above the water
 GRID_CELL_M = 2.0
 
@@ -90,6 +97,8 @@ class ViserView:
         self._framed = False  # initial camera pointed at this session's ship yet
         self._berth_key: tuple | None = None
         self._targets: dict[str, Any] = {}
+        self.theme = "day"
+        self._color = PALETTES["day"]
 
     @property
     def port(self) -> int:
@@ -100,6 +109,19 @@ class ViserView:
         if ":" in host:  # IPv6 literal
             host = f"[{host}]"
         return f"http://{host}:{self.port}/"
+
+    def set_theme(self, theme: str) -> None:
+        """Day or night for every viewer of this 3-D view (one viser server: the last page
+        to switch sets it): the panel's dark mode and the scene's colours, redrawn."""
+        if theme not in PALETTES:
+            raise ValueError(f"theme {theme!r} is neither " + " nor ".join(PALETTES))
+        with self._lock:
+            self.theme, self._color = theme, PALETTES[theme]
+            night = theme == "night"
+            self.server.gui.configure_theme(dark_mode=night, show_share_button=False,
+                                            brand_color=NIGHT_BRAND if night else None)
+            if self._session is not None:
+                self.follow(self._session)  # redrawn in the new colours
 
     @property
     def session_id(self) -> str | None:
@@ -165,21 +187,24 @@ class ViserView:
         hull = np.asarray(rec.hull.outline_body, dtype=float)[:, :2]
         outline = np.column_stack([hull, np.zeros(len(hull))])
         closed = np.vstack([outline, outline[:1]])
-        self._nodes["ship"] = scene.add_frame("/ship", show_axes=True, axes_length=1.0,
-                                              axes_radius=0.03)
+        # the ship's axes are pure red, green and blue: not at night
+        self._nodes["ship"] = scene.add_frame("/ship", show_axes=self.theme != "night",
+                                              axes_length=1.0, axes_radius=0.03)
         self._children["hull"] = scene.add_line_segments(
-            "/ship/hull", _segments(closed), HULL, thickness=3.0, thickness_units="screen")
+            "/ship/hull", _segments(closed), self._color["hull"], thickness=3.0,
+            thickness_units="screen")
         cam = rec.calibration.camera
         fov = 2.0 * math.atan2(cam.height / 2.0, float(cam.K[1, 1]))
         self._children["camera"] = scene.add_camera_frustum(
-            "/ship/camera", fov=fov, aspect=cam.width / cam.height, scale=1.0, color=(20, 20, 20),
+            "/ship/camera", fov=fov, aspect=cam.width / cam.height, scale=1.0,
+            color=self._color["camera"],
             wxyz=_wxyz(cam.C_camera_to_body), position=tuple(cam.lever_arm_body))
         water = session.water.down_m
         size = 2.0 * grid_radius(max(water - float(cam.lever_arm_body[2]), 0.5))
         self._nodes["grid"] = scene.add_grid(
             "/water_grid", width=size, height=size, plane="xy", cell_size=GRID_CELL_M,
-            section_size=10 * GRID_CELL_M, cell_color=(60, 160, 60),
-            section_color=(30, 120, 30), position=(0.0, 0.0, water))
+            section_size=10 * GRID_CELL_M, cell_color=self._color["grid_cell"],
+            section_color=self._color["grid_section"], position=(0.0, 0.0, water))
 
     # ---------------------------------------------------------------------- per frame
 
@@ -224,7 +249,8 @@ class ViserView:
             return
         ref = session.rec.reference.position_ned[::10] - aligned[1]  # 10 Hz is plenty
         self._nodes["reference"] = self.server.scene.add_line_segments(
-            "/reference", _segments(ref), GREY, thickness=2.0, thickness_units="screen")
+            "/reference", _segments(ref), self._color["reference"], thickness=2.0,
+            thickness_units="screen")
 
     def _frame_view(self, state: Any) -> None:
         """Point the viewers' initial camera ("Reset View") at the approach: above and behind
@@ -266,13 +292,14 @@ class ViserView:
             self._nodes["tail"].points = segments
         else:
             self._nodes["tail"] = self.server.scene.add_line_segments(
-                "/fused/tail", segments, RED, thickness=3.0, thickness_units="screen")
+                "/fused/tail", segments, self._color["fused"], thickness=3.0,
+                thickness_units="screen")
 
     def _freeze_tail(self) -> None:
         segments = _segments(np.array(self._tail))
         name = f"/fused/chunk_{len(self._chunks):04d}"
         self._chunks.append(self.server.scene.add_line_segments(
-            name, segments, RED, thickness=3.0, thickness_units="screen"))
+            name, segments, self._color["fused"], thickness=3.0, thickness_units="screen"))
         self._tail = [self._tail[-1]]  # the next chunk starts where this one ends
         tail = self._nodes.pop("tail", None)
         if tail is not None:
@@ -306,7 +333,8 @@ class ViserView:
                 segments = np.array([[foot[0], foot[1]], [top[0], top[1]], [foot[0], top[0]],
                                      [foot[1], top[1]]], dtype=np.float32)
                 self._nodes["berth"] = self.server.scene.add_line_segments(
-                    "/berth_line", segments, BERTH, thickness=5.0, thickness_units="screen")
+                    "/berth_line", segments, self._color["berth"], thickness=5.0,
+                    thickness_units="screen")
             self._berth_key = key
         seen = set()
         for target in session.targets.all():
@@ -315,7 +343,8 @@ class ViserView:
             handle = self._targets.get(target.id)
             if handle is None:
                 handle = self._targets[target.id] = self.server.scene.add_icosphere(
-                    f"/targets/{target.id}", radius=0.35, color=TARGET, position=position)
+                    f"/targets/{target.id}", radius=0.35, color=self._color["target"],
+                    position=position)
                 self.server.scene.add_label(f"/targets/{target.id}/label",
                                             target.label or target.id)
             else:
@@ -352,5 +381,5 @@ class ViserView:
 
     def _add_points(self, name: str, pts: np.ndarray) -> Any:
         return self.server.scene.add_point_cloud(
-            name, np.asarray(pts, dtype=np.float32), BLUE, point_size=0.15,
+            name, np.asarray(pts, dtype=np.float32), self._color["structure"], point_size=0.15,
             precision="float32", point_shape="circle")

@@ -105,6 +105,7 @@ class Sink:
     rewinds: list[float | None] = field(default_factory=list)
     states: list[ReplayState] = field(default_factory=list)
     event: threading.Event = field(default_factory=threading.Event)
+    jumped: list[tuple[float, object]] = field(default_factory=list)
 
     def on_frame(self, result: FrameResult, engine) -> None:
         self.results.append(result)
@@ -112,6 +113,9 @@ class Sink:
     def on_rewind(self, t: float | None) -> None:
         self.rewinds.append(t)
         self.results = [r for r in self.results if t is not None and r.t <= t]
+
+    def on_history(self, states: list[tuple[float, object]]) -> None:
+        self.jumped += states
 
     def on_state(self, state: ReplayState) -> None:
         self.states.append(state)
@@ -158,6 +162,47 @@ def test_replay_as_fast_as_possible_then_seek_back_from_a_checkpoint(rec: Record
         assert sink.results[-1].state.value == straight[10]
     finally:
         replayer.stop()
+
+
+def test_the_scout_runs_ahead_and_seeks_start_from_its_copies(rec: Recording):
+    """Paused at the start, the scout runs the whole recording; a forward seek then jumps to
+    its copy nearest before the target (the states jumped over come from the scout), a
+    backward one too, and both give exactly the states of an uninterrupted run."""
+    straight, engine = {}, SumEngine()
+    for m in sensor_messages(rec):
+        if (state := dispatch(engine, m)) is not None:
+            straight[m.t] = state.value
+    sink = Sink()
+    replayer = Replayer(rec, SumEngine, sink, speed=1.0, scout=True)
+    replayer.start(paused=True)
+    try:
+        assert replayer.scout is not None
+        wait_for(lambda: replayer.scout.done, 60)
+        start = rec.manifest.start_gpst
+        copies = [replayer.scout.checkpoint(t + 0.05) for t in rec.frame_times]
+        spaced = sorted({c.t for c in copies if c is not None})
+        assert len(spaced) == 6 and np.allclose(np.diff(spaced), 2.0, atol=0.11)
+        assert replayer.status()["scouted_gpst"] == pytest.approx(rec.frame_times[-1], abs=0.1)
+        for target in (start + 10.55, start + 4.25):  # forward, then backward
+            rewound = len(sink.rewinds)
+            replayer.seek(target)
+            wait_for(lambda rewound=rewound, target=target: len(sink.rewinds) > rewound
+                     and replayer.state == ReplayState.PAUSED and sink.results[-1].live
+                     and sink.results[-1].t >= target)
+            cp = replayer.scout.checkpoint(target)
+            assert sink.rewinds[-1] == pytest.approx(cp.t)
+            recomputed = [r for r in sink.results if r.t > cp.t]
+            assert 1 <= len(recomputed) <= 21  # at most 2 s of frames after the copy
+            assert recomputed[-1].live and recomputed[-1].t >= target
+            for r in recomputed:
+                assert r.state.value == straight[r.t]
+        # the forward jump left no gap: the frames it skipped came from the scout, exact
+        assert len(sink.jumped) >= 80
+        for t, state in sink.jumped:
+            assert state.value == straight[t]
+    finally:
+        replayer.stop()
+    assert replayer.scout.checkpoint(float("inf")) is None  # the copies are released
 
 
 def test_real_time_pace_pause_and_speed(rec: Recording):

@@ -303,6 +303,26 @@ def test_viser_scene_holds_trajectory_and_structure(live: Live, replayed: dict):
     foot = np.asarray(names["/berth_line"]["props"]["points"], dtype=float).reshape(-1, 2, 3)[0]
     np.testing.assert_allclose(foot[:, :2], line, atol=0.05)  # (viser may send float16)
     assert targets and all(f"/targets/{t['id']}" in names for t in targets)
+    # night: viser's dark mode and every scene colour dimmed and warm, as the page's
+    from backend.viser_view import PALETTES
+
+    with httpx.Client(base_url=live.url) as client:
+        r = client.put("/api/viewer/theme", json={"theme": "dusk"})
+        assert r.status_code == 422 and "theme" in r.text
+        assert client.put("/api/viewer/theme", json={"theme": "night"}).status_code == 200
+    try:
+        night = asyncio.run(_viser_scene(viewer["url"].replace("http://", "ws://")))
+        themes = [m for m in night if m["type"] == "ThemeConfigurationMessage"]
+        assert themes and themes[-1]["dark_mode"] is True
+        nodes = {m["name"]: m for m in night if "props" in m}
+        colours = {tuple(np.asarray(m["props"]["colors"]).reshape(-1, 3)[0].tolist())
+                   for n, m in nodes.items() if n.startswith("/fused/")}
+        assert colours == {PALETTES["night"]["fused"]}
+        for colour in PALETTES["night"].values():  # no white, no saturated green or blue
+            assert max(colour) <= 170 and colour[1] <= colour[0] and colour[2] <= 100
+    finally:
+        with httpx.Client(base_url=live.url) as client:
+            client.put("/api/viewer/theme", json={"theme": "day"})
 
 
 def test_cli_serve_binds_loopback_and_checks_the_recording(tmp_path: Path, capsys):

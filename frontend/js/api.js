@@ -84,4 +84,5 @@ export const api = {
     request("POST", `/api/sessions/${id}/alarms/${alarmId}/acknowledge`),
   viewer: () => request("GET", "/api/viewer"),
   followViewer: (session) => request("PUT", "/api/viewer", { session }),
+  viewerTheme: (theme) => request("PUT", "/api/viewer/theme", { theme }),
 };

@@ -88,13 +88,24 @@ export class Controls {
       this.seekFrom = this.seekTarget = null;
     }
     this.session = s;
+    this.setScouted(s.scouted_s);
     this._badge();
   }
 
   /** From each shown frame: how the replay keeps up with real time. */
   setReplay(replay) {
     this.behind = replay?.state === "playing" ? replay.behind_s ?? 0 : 0;
+    this.setScouted(replay?.scouted_s);
     this._badge();
+  }
+
+  /** The part of the seek bar a seek reaches quickly (the look-ahead engine has been there). */
+  setScouted(scouted) {
+    const max = parseFloat(this.seek.max) || 1;
+    const pct = scouted == null ? 0 : Math.min(100, Math.max(0, (100 * scouted) / max));
+    this.seek.style.setProperty("--ready", `${pct.toFixed(1)}%`);
+    this.seek.title = scouted == null ? "Seek"
+      : `Seek (quick up to ${fmtTime(scouted)}; beyond, the replay computes its way there)`;
   }
 
   _badge() {

@@ -401,6 +401,7 @@ function applyTheme(name) {
   setTheme(name);
   el.theme.textContent = name === "night" ? "Day" : "Night";
   el.theme.title = `Switch to ${name === "night" ? "day" : "night"} colours (N)`;
+  viewer.setTheme(name);
   render();
 }
 el.theme.addEventListener("click", () => applyTheme(currentTheme() === "night" ? "day" : "night"));

@@ -2,6 +2,7 @@
 // port structure in blue. Loaded into the tab only when first opened (it streams a scene).
 
 import { api } from "./api.js";
+import { currentTheme } from "./theme.js";
 
 export class Viewer {
   constructor(root) {
@@ -9,6 +10,7 @@ export class Viewer {
     this.link = root.querySelector("#viewer-link");
     this.msg = root.querySelector("#viewer-msg");
     this.url = null;
+    this.theme = null; // the colours last set in the 3-D view
   }
 
   /** Point the viewer at our session and load it. */
@@ -22,10 +24,23 @@ export class Viewer {
       this.url = info.url;
       this.link.href = info.url;
       this.msg.hidden = true;
+      await this.setTheme(currentTheme());
       if (this.frame.getAttribute("src") !== info.url) this.frame.src = info.url;
     } catch (err) {
       this.msg.hidden = false;
       this.msg.textContent = `3-D view unavailable: ${err.message}`;
+    }
+  }
+
+  /** The page's day/night colours in the 3-D view too (once it has been opened). */
+  async setTheme(name) {
+    if (!this.url || this.theme === name) return;
+    try {
+      await api.viewerTheme(name);
+      this.theme = name;
+    } catch (err) {
+      this.msg.hidden = false;
+      this.msg.textContent = `3-D view colours not switched: ${err.message}`;
     }
   }
 }
