@@ -69,8 +69,8 @@ def main() -> int:
             if playing:
                 http.post(f"/api/sessions/{sid}/control", json={"action": "play"})
             key = "playing" if playing else "paused"
-            result[key] = [(round(f * duration, 1), round(seek(http, sid, f * duration, playing), 2))
-                           for f in TARGETS]
+            result[key] = [(round(f * duration, 1),
+                            round(seek(http, sid, f * duration, playing), 2)) for f in TARGETS]
         http.delete(f"/api/sessions/{sid}")
     if args.json:
         print(json.dumps(result, indent=2))
