@@ -28,7 +28,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from recordings.sim.simulate import simulate
 
     out = simulate(args.scenario, args.seed, args.out, duration_s=args.duration,
-                   progress=not args.quiet)
+                   progress=not args.quiet, camera_size=args.camera_size)
     print(f"wrote {out}")
     return 0
 
@@ -147,6 +147,16 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _size(text: str) -> tuple[int, int]:
+    """``WxH`` → (W, H)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT (e.g. 1920x1200)"
+                                         ) from None
+    return w, h
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="berthing-aid", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -156,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--out", required=True, help="output directory (new or empty)")
     p.add_argument("--duration", type=float, default=None, help="seconds (default: scenario's)")
+    p.add_argument("--camera-size", type=_size, default=None, metavar="WxH",
+                   help="video size, same field of view (default: the scenario's 960x600; "
+                        "the thesis camera: 1920x1200)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_simulate)
 

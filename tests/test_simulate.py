@@ -50,11 +50,34 @@ def test_simulation_is_deterministic_for_a_seed(large_ship: Path, tmp_path: Path
         assert filecmp.cmp(large_ship / name, again / name, shallow=False), name
 
 
+def test_camera_size_renders_the_same_world_at_another_resolution(large_ship: Path,
+                                                                   tmp_path: Path) -> None:
+    """``--camera-size``: the same seed's world and motion, the video at another size with
+    the same field of view (the focal length scales with the width)."""
+    small = tmp_path / "small"
+    assert main(["simulate", "--scenario", "large-ship", "--seed", "5", "--duration", "3",
+                 "--camera-size", "480x300", "--out", str(small), "--quiet"]) == 0
+    a, b = load(large_ship), load(small)
+    assert b.read_frame(15).shape == (300, 480, 3)
+    assert (b.calibration.camera.width, b.calibration.camera.height) == (480, 300)
+    np.testing.assert_allclose(b.calibration.camera.K[0, 0], a.calibration.camera.K[0, 0] / 2)
+    assert filecmp.cmp(large_ship / "imu.csv", small / "imu.csv", shallow=False)
+    # the same picture, downsized: the half-size render matches the full one shrunk
+    big = a.read_frame(15).astype(float)
+    shrunk = big.reshape(300, 2, 480, 2, 3).mean(axis=(1, 3))
+    assert np.abs(shrunk - b.read_frame(15)).mean() < 20
+
+
 def test_simulate_refuses_bad_arguments(tmp_path: Path, capsys) -> None:
     assert main(["simulate", "--scenario", "tanker", "--out", str(tmp_path / "x")]) == 2
     assert "unknown scenario 'tanker'" in capsys.readouterr().err
     assert main(["simulate", "--duration", "1000", "--out", str(tmp_path / "y")]) == 2
     assert "duration must be within" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["simulate", "--camera-size", "1920by1200", "--out", str(tmp_path / "z")])
+    assert "'1920by1200' is not WIDTHxHEIGHT" in capsys.readouterr().err
+    assert main(["simulate", "--camera-size", "10x10", "--out", str(tmp_path / "w")]) == 2
+    assert "camera size 10x10 is outside" in capsys.readouterr().err
 
 
 def test_info_on_the_bundled_recording(capsys) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -107,12 +108,21 @@ def simulate(
     duration_s: float | None = None,
     progress: bool = True,
     gnss_errors: GnssErrorModel | None = None,
+    camera_size: tuple[int, int] | None = None,
 ) -> Path:
-    """Simulate ``scenario_name`` with ``seed`` into the directory ``out`` and return it."""
+    """Simulate ``scenario_name`` with ``seed`` into the directory ``out`` and return it.
+
+    ``camera_size``: (width, height) of the video instead of the scenario's, same field of
+    view (e.g. the thesis camera's 1920×1200); the same seed draws the same world."""
     if scenario_name not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario_name!r}; choose one of {sorted(SCENARIOS)}")
     # the seed draws the port, light, water, camera mounting and manoeuvre (variety)
     scenario: Scenario = seeded(SCENARIOS[scenario_name], seed)
+    if camera_size is not None:
+        w, h = camera_size
+        if not (160 <= w <= 4096 and 120 <= h <= 3072):
+            raise ValueError(f"camera size {w}x{h} is outside 160x120..4096x3072")
+        scenario = dataclasses.replace(scenario, camera_size=(int(w), int(h)))
     duration = float(duration_s if duration_s is not None else scenario.duration_s)
     if not 1.0 <= duration <= scenario.duration_s:
         raise ValueError(
