@@ -91,6 +91,18 @@ def test_a_second_run_skips_what_is_done(local: tuple[Path, Path, dict]) -> None
     assert again["figures"] == {k: v for k, v in summary["figures"].items()}
 
 
+def _wait_for_port(port: int, proc: subprocess.Popen, timeout_s: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        assert proc.poll() is None, "the dask scheduler exited"
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+            return
+        except OSError:
+            assert time.monotonic() < deadline, f"no dask scheduler on port {port}"
+            time.sleep(0.2)
+
+
 def test_a_loopback_dask_cluster_gives_the_same_summary(local: tuple[Path, Path, dict],
                                                        tmp_path: Path) -> None:
     cache, _out, summary = local
@@ -100,7 +112,7 @@ def test_a_loopback_dask_cluster_gives_the_same_summary(local: tuple[Path, Path,
                                "127.0.0.1", "--port", str(port), "--no-dashboard"], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     try:
-        time.sleep(2.0)
+        _wait_for_port(port, procs[0])  # a loaded machine takes its time to import dask
         procs.append(subprocess.Popen(
             [sys.executable, "-m", "distributed.cli.dask_worker", f"tcp://127.0.0.1:{port}",
              "--nworkers", "2", "--nthreads", "1", "--no-dashboard", "--memory-limit", "3GiB"],
