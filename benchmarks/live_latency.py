@@ -26,38 +26,25 @@ import json
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
 import numpy as np
-from serverproc import DEFAULT_RECORDING, ROOT, proc_cpu_seconds, proc_rss_mb, serve
+from serverproc import (
+    DEFAULT_RECORDING,
+    ROOT,
+    proc_cpu_seconds,
+    proc_rss_mb,
+    recording_path,
+    serve,
+    watch_frames,
+)
 from stream_latency import percentiles
 
 sys.path.insert(0, str(ROOT))
 from live.emulator import Emulator  # noqa: E402
 from recordings.format import load  # noqa: E402
-
-
-async def client(url: str, until: float, out: list[tuple[float, float, float]]) -> None:
-    """Receive frames until ``until``; record (received, gpst, processed_at) of each."""
-    import websockets
-
-    async with websockets.connect(url + "?ack=1", max_size=None) as ws:
-        while time.time() < until:
-            try:
-                message = await asyncio.wait_for(ws.recv(), timeout=max(0.1, until - time.time()))
-            except TimeoutError:
-                break
-            if not isinstance(message, str):
-                continue
-            header = json.loads(message)
-            if header["type"] == "frame":
-                await ws.recv()  # the JPEG
-                if header["pose"] is not None:
-                    out.append((time.time(), header["pose"]["gpst"], header["processed_at"]))
-                await ws.send(json.dumps({"type": "ack", "seq": header["seq"]}))
-            elif header["type"] != "status":
-                break
 
 
 def published_at(published: list[tuple[float, float]], gpst: np.ndarray) -> np.ndarray:
@@ -77,9 +64,8 @@ def main() -> int:
                         help="measured span (after the session's first pose)")
     parser.add_argument("--json", action="store_true", help="the figures as JSON")
     args = parser.parse_args()
-    recording = Path(args.recording).resolve()
-    if not (recording / "manifest.json").is_file():
-        print(f"no recording at {recording}; make one with berthing-aid simulate", file=sys.stderr)
+    recording = recording_path(args.recording)
+    if recording is None:
         return 2
     rec = load(recording)
     emulator = Emulator(rec)
@@ -130,7 +116,13 @@ def measure(server, http: httpx.Client, emulator: Emulator, args: argparse.Names
 
     async def run() -> tuple[float, float]:
         until = time.time() + seconds
-        tasks = [asyncio.create_task(client(url, until, out)) for out in received]
+        def keep(out: list) -> Callable[[dict, float], None]:
+            def on_frame(header: dict, now: float) -> None:
+                if header["pose"] is not None:  # (received, gpst, processed_at)
+                    out.append((now, header["pose"]["gpst"], header["processed_at"]))
+            return on_frame
+
+        tasks = [asyncio.create_task(watch_frames(url, until, keep(out))) for out in received]
         cpu0, wall0 = proc_cpu_seconds(server.pid), time.monotonic()
         while time.time() < until:
             rss.append(proc_rss_mb(server.pid))

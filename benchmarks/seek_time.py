@@ -16,10 +16,9 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 import httpx
-from serverproc import DEFAULT_RECORDING, serve
+from serverproc import DEFAULT_RECORDING, recording_path, serve
 
 # fractions of the recording, in this order: far forward, back, near, far back, ...
 TARGETS = (0.95, 0.05, 0.5, 0.55, 0.2, 0.8, 0.33, 0.99, 0.01, 0.66)
@@ -44,9 +43,8 @@ def main() -> int:
     parser.add_argument("recording", nargs="?", default=str(DEFAULT_RECORDING))
     parser.add_argument("--json", action="store_true", help="the figures as JSON")
     args = parser.parse_args()
-    recording = Path(args.recording).resolve()
-    if not (recording / "manifest.json").is_file():
-        print(f"no recording at {recording}; make one with berthing-aid simulate", file=sys.stderr)
+    recording = recording_path(args.recording)
+    if recording is None:
         return 2
     result: dict = {"recording": recording.name}
     with serve(recording, viewer=False) as server, \

@@ -1,14 +1,17 @@
 """What the server benchmarks share: ``berthing-aid serve`` in a subprocess on a free loopback
-port, and its CPU, memory and threads read from /proc (Linux)."""
+port, its CPU, memory and threads read from /proc (Linux), the recording argument, and a
+stream client that watches frames as the page does."""
 
 from __future__ import annotations
 
+import asyncio
+import json
 import os
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -87,3 +90,35 @@ def serve(recording: Path, viewer: bool = True, extra: tuple[str, ...] = ()) -> 
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait(10)
+
+
+def recording_path(arg: str) -> Path | None:
+    """The recording a benchmark was given, or None (said on stderr) when there is none."""
+    recording = Path(arg).resolve()
+    if not (recording / "manifest.json").is_file():
+        print(f"no recording at {recording}; make one with berthing-aid simulate",
+              file=sys.stderr)
+        return None
+    return recording
+
+
+async def watch_frames(url: str, until: float, on_frame: Callable[[dict, float], None]) -> None:
+    """A stream client as the page is (acknowledged frames) until ``until`` (wall clock):
+    ``on_frame(header, received_at)`` for each frame; ends early on an error or close."""
+    import websockets
+
+    async with websockets.connect(url + "?ack=1", max_size=None) as ws:
+        while time.time() < until:
+            try:
+                message = await asyncio.wait_for(ws.recv(), timeout=max(0.1, until - time.time()))
+            except TimeoutError:
+                break
+            if not isinstance(message, str):
+                continue
+            header = json.loads(message)
+            if header["type"] == "frame":
+                await ws.recv()  # the JPEG
+                on_frame(header, time.time())
+                await ws.send(json.dumps({"type": "ack", "seq": header["seq"]}))
+            elif header["type"] != "status":
+                break

@@ -27,12 +27,11 @@ import json
 import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import httpx
 import numpy as np
 import websockets
-from serverproc import DEFAULT_RECORDING, proc_rss_mb, proc_threads, serve
+from serverproc import DEFAULT_RECORDING, proc_rss_mb, proc_threads, recording_path, serve
 
 
 @dataclass
@@ -182,9 +181,8 @@ def main() -> int:
     parser.add_argument("--report", type=float, default=60.0, help="seconds per printed row")
     parser.add_argument("--no-viewer", action="store_true", help="without the 3-D viewer")
     args = parser.parse_args()
-    recording = Path(args.recording).resolve()
-    if not (recording / "manifest.json").is_file():
-        print(f"no recording at {recording}", file=sys.stderr)
+    recording = recording_path(args.recording)
+    if recording is None:
         return 2
     print(f"soak: {recording.name}, {args.minutes:g} min, {args.clients} clients, a session "
           f"created every {args.every:g} s, viewer {'off' if args.no_viewer else 'on'}")

@@ -18,35 +18,20 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import sys
 import time
-from pathlib import Path
 
 import httpx
 import numpy as np
-import websockets
-from serverproc import DEFAULT_RECORDING, proc_cpu_seconds, proc_rss_mb, serve
-
-
-async def client(url: str, until: float, out: list[tuple[float, float, float]]) -> None:
-    """Receive frames until ``until`` (wall clock); record (received, processed_at, sent_at)."""
-    async with websockets.connect(url + "?ack=1", max_size=None) as ws:
-        while time.time() < until:
-            try:
-                message = await asyncio.wait_for(ws.recv(), timeout=max(0.1, until - time.time()))
-            except TimeoutError:
-                break
-            if not isinstance(message, str):
-                continue
-            header = json.loads(message)
-            if header["type"] == "frame":
-                await ws.recv()  # the JPEG
-                out.append((time.time(), header["processed_at"], header["sent_at"]))
-                await ws.send(json.dumps({"type": "ack", "seq": header["seq"]}))
-            elif header["type"] != "status":
-                break
+from serverproc import (
+    DEFAULT_RECORDING,
+    proc_cpu_seconds,
+    proc_rss_mb,
+    recording_path,
+    serve,
+    watch_frames,
+)
 
 
 def percentiles(values: list[float]) -> str:
@@ -65,9 +50,8 @@ def main() -> int:
     parser.add_argument("--speed", type=float, default=1.0, help="replay speed (10 fps at 1)")
     parser.add_argument("--no-viewer", action="store_true", help="without the 3-D viewer")
     args = parser.parse_args()
-    recording = Path(args.recording).resolve()
-    if not (recording / "manifest.json").is_file():
-        print(f"no recording at {recording}; make one with berthing-aid simulate", file=sys.stderr)
+    recording = recording_path(args.recording)
+    if recording is None:
         return 2
 
     with serve(recording, viewer=not args.no_viewer) as server, \
@@ -83,7 +67,9 @@ def main() -> int:
 
         async def run() -> tuple[float, float]:
             until = time.time() + duration + 0.5
-            tasks = [asyncio.create_task(client(url, until, out)) for out in received]
+            tasks = [asyncio.create_task(watch_frames(
+                url, until, lambda h, now, out=out: out.append(
+                    (now, h["processed_at"], h["sent_at"])))) for out in received]
             await asyncio.sleep(0.5)  # all connected
             cpu0, wall0 = proc_cpu_seconds(server.pid), time.monotonic()
             http.post(f"/api/sessions/{sid}/control", json={"action": "play"})
