@@ -34,9 +34,8 @@ import numpy as np
 from serverproc import (
     DEFAULT_RECORDING,
     ROOT,
-    proc_cpu_seconds,
-    proc_rss_mb,
     recording_path,
+    sample_server,
     serve,
     watch_frames,
 )
@@ -112,9 +111,8 @@ def measure(server, http: httpx.Client, emulator: Emulator, args: argparse.Names
     seconds = max(1.0, min(args.seconds, remaining - 1.0))
     url = f"{server.ws}/api/sessions/{sid}/stream"
     received: list[list[tuple[float, float, float]]] = [[] for _ in range(args.clients)]
-    rss: list[float] = []
 
-    async def run() -> tuple[float, float]:
+    async def run() -> tuple[float, float, list[float]]:
         until = time.time() + seconds
         def keep(out: list) -> Callable[[dict, float], None]:
             def on_frame(header: dict, now: float) -> None:
@@ -123,14 +121,9 @@ def measure(server, http: httpx.Client, emulator: Emulator, args: argparse.Names
             return on_frame
 
         tasks = [asyncio.create_task(watch_frames(url, until, keep(out))) for out in received]
-        cpu0, wall0 = proc_cpu_seconds(server.pid), time.monotonic()
-        while time.time() < until:
-            rss.append(proc_rss_mb(server.pid))
-            await asyncio.sleep(0.5)
-        await asyncio.gather(*tasks)
-        return proc_cpu_seconds(server.pid) - cpu0, time.monotonic() - wall0
+        return await sample_server(server.pid, until, tasks)
 
-    cpu, wall = asyncio.run(run())
+    cpu, wall, rss = asyncio.run(run())
     status = http.get(f"/api/sessions/{sid}").json()
     live = status["live"]
     rows = np.array([r for out in received for r in out])

@@ -122,3 +122,16 @@ async def watch_frames(url: str, until: float, on_frame: Callable[[dict, float],
                 await ws.send(json.dumps({"type": "ack", "seq": header["seq"]}))
             elif header["type"] != "status":
                 break
+
+
+async def sample_server(pid: int, until: float, clients: list[asyncio.Task]
+                        ) -> tuple[float, float, list[float]]:
+    """The server's CPU seconds and wall seconds until ``until`` (wall clock) and its RSS
+    every 0.5 s meanwhile; then waits for the clients."""
+    cpu0, wall0 = proc_cpu_seconds(pid), time.monotonic()
+    rss: list[float] = []
+    while time.time() < until:
+        rss.append(proc_rss_mb(pid))
+        await asyncio.sleep(0.5)
+    await asyncio.gather(*clients)
+    return proc_cpu_seconds(pid) - cpu0, time.monotonic() - wall0, rss

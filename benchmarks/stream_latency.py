@@ -26,9 +26,8 @@ import httpx
 import numpy as np
 from serverproc import (
     DEFAULT_RECORDING,
-    proc_cpu_seconds,
-    proc_rss_mb,
     recording_path,
+    sample_server,
     serve,
     watch_frames,
 )
@@ -63,23 +62,17 @@ def main() -> int:
         duration = min(args.seconds, session["duration_s"] / args.speed)
         url = f"{server.ws}/api/sessions/{sid}/stream"
         received: list[list[tuple[float, float, float]]] = [[] for _ in range(args.clients)]
-        rss: list[float] = []
 
-        async def run() -> tuple[float, float]:
+        async def run() -> tuple[float, float, list[float]]:
             until = time.time() + duration + 0.5
             tasks = [asyncio.create_task(watch_frames(
                 url, until, lambda h, now, out=out: out.append(
                     (now, h["processed_at"], h["sent_at"])))) for out in received]
             await asyncio.sleep(0.5)  # all connected
-            cpu0, wall0 = proc_cpu_seconds(server.pid), time.monotonic()
             http.post(f"/api/sessions/{sid}/control", json={"action": "play"})
-            while time.time() < until:
-                rss.append(proc_rss_mb(server.pid))
-                await asyncio.sleep(0.5)
-            await asyncio.gather(*tasks)
-            return proc_cpu_seconds(server.pid) - cpu0, time.monotonic() - wall0
+            return await sample_server(server.pid, until, tasks)
 
-        cpu, wall = asyncio.run(run())
+        cpu, wall, rss = asyncio.run(run())
         status = http.get(f"/api/sessions/{sid}").json()
         http.delete(f"/api/sessions/{sid}")
 
