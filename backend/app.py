@@ -8,6 +8,7 @@ live on ``app.state`` and reach the routes as injected dependencies (``deps``).
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import AsyncIterator, Callable
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ from .access import Access, TokenGate
 from .catalog import RecordingCatalog
 from .errors import install_handlers
 from .http_rules import MethodGate, reject_unknown_query
-from .models import ErrorResponse, ServerInfo
+from .models import ErrorResponse, FusionOptionsModel, ServerInfo
 from .sessions import Session, SessionManager
 
 log = logging.getLogger(__name__)
@@ -54,6 +55,9 @@ class Settings:
     # Started with the server: a live session (``backend.live_session``) from this config
     live_config: Any = None  # live.config.LiveConfig
     bridge: Any = None  # live.config.BridgeConfig: NMEA from every replay session
+    # start the default recording's look-ahead engine at once (the CLI does): the first
+    # page's seeks are quick too
+    warm_scout: bool = False
 
 
 API_DESCRIPTION = (
@@ -69,6 +73,17 @@ API_DESCRIPTION = (
     "(schema of its frame header: `GET /api/stream/schema`). "
     "Off loopback every `/api` request needs `Authorization: Bearer <token>` "
     "(the stream: `?token=`); a read-only token may only read and watch.")
+
+
+def _warm(manager: SessionManager) -> None:
+    """The default recording's look-ahead engine, with the options a page opens it with."""
+    name = manager.catalog.default_name()
+    if name is None:
+        return
+    try:
+        manager.warm(name, FusionOptionsModel().model_dump())
+    except Exception:  # a recording that does not load says so when a page opens it
+        log.exception("warming the look-ahead engine of %s failed", name)
 
 
 def _lifespan(settings: Settings, manager: SessionManager
@@ -115,6 +130,9 @@ def _lifespan(settings: Settings, manager: SessionManager
             if settings.announce:
                 print(f"live session {app.state.live_session.id} "
                       f"({settings.live_config.path})", flush=True)
+        if settings.warm_scout and settings.live_config is None:
+            threading.Thread(target=_warm, args=(manager,), name="warm-scout",
+                             daemon=True).start()
         try:
             yield
         finally:

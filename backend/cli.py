@@ -90,7 +90,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = Settings(recordings_dir=recordings_dir, default_recording=recording,
                         viser_host=viser_host, viser_port=None if args.no_viewer
                         else args.viser_port, announce=True, access=access,
-                        integrity=integrity, live_config=live_config, bridge=bridge)
+                        integrity=integrity, live_config=live_config, bridge=bridge,
+                        warm_scout=True)
     shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
     if ":" in shown:
         shown = f"[{shown}]"

@@ -126,17 +126,16 @@ class _Checkpoint:
 class Scout:
     """A second engine run through the recording ahead of the replay (module docstring).
 
-    ``busy()`` says when the replay needs the processor: the scout then waits."""
+    One scout may serve several replays of the same recording and engine options
+    (``ScoutPool``): each attaches ``busy()`` (it needs the processor: the scout waits) and
+    ``progress()`` (called after each copy and at the end, so that its clients are told)."""
 
     def __init__(self, rec: Recording, make_engine: Callable[[], FusionEngine],
-                 busy: Callable[[], bool], shared: tuple[Any, ...] = (),
-                 interval_s: float = SCOUT_INTERVAL_S,
-                 max_checkpoints: int = SCOUT_MAX_CHECKPOINTS,
-                 progress: Callable[[], None] | None = None) -> None:
+                 shared: tuple[Any, ...] = (), interval_s: float = SCOUT_INTERVAL_S,
+                 max_checkpoints: int = SCOUT_MAX_CHECKPOINTS) -> None:
         self.rec = rec
         self._make_engine = make_engine
-        self._busy = busy
-        self._progress = progress  # called after each copy and at the end (clients are told)
+        self._waiters: dict[int, tuple[Callable[[], bool], Callable[[], None] | None]] = {}
         self._shared = shared
         self.interval_s = interval_s
         self._max_checkpoints = max_checkpoints
@@ -150,8 +149,31 @@ class Scout:
         self._thread = threading.Thread(target=self._run, name=f"scout-{rec.manifest.name}",
                                         daemon=True)
 
+    def attach(self, owner: object, busy: Callable[[], bool],
+               progress: Callable[[], None] | None = None) -> None:
+        with self._lock:
+            self._waiters[id(owner)] = (busy, progress)
+
+    def detach(self, owner: object) -> None:
+        with self._lock:
+            self._waiters.pop(id(owner), None)
+
+    @property
+    def attached(self) -> int:
+        with self._lock:
+            return len(self._waiters)
+
+    def _busy(self) -> bool:
+        with self._lock:
+            waiters = list(self._waiters.values())
+        return any(busy() for busy, _ in waiters)
+
     def start(self) -> None:
-        self._thread.start()
+        """Start running (once; later calls do nothing)."""
+        with self._lock:
+            if self._thread.ident is not None or self._stop.is_set():
+                return
+            self._thread.start()
 
     def stop(self, timeout: float | None = 5.0) -> None:
         self._stop.set()
@@ -173,11 +195,14 @@ class Scout:
             return [(t, s) for t, s in self._states if after < t <= until]
 
     def _tell(self) -> None:
-        if self._progress is not None:
-            try:
-                self._progress()
-            except Exception:  # telling the clients is a courtesy: the scout goes on
-                log.exception("scout progress callback failed")
+        with self._lock:
+            waiters = list(self._waiters.values())
+        for _, progress in waiters:
+            if progress is not None:
+                try:
+                    progress()
+                except Exception:  # telling the clients is a courtesy: the scout goes on
+                    log.exception("scout progress callback failed")
 
     def _run(self) -> None:
         messages: Iterator[SensorMessage] = iter(())
@@ -216,6 +241,44 @@ class Scout:
                 close()
 
 
+class ScoutPool:
+    """The scouts of a server, one per recording and engine options, shared by the sessions
+    that replay them (a page reloaded, a second screen, a session made again: its seeks are
+    quick at once). At most ``size`` are kept: beyond, the least recently asked for that no
+    replay uses is stopped (each holds up to ~190 MB of engine copies)."""
+
+    def __init__(self, size: int = 2) -> None:
+        self.size = size
+        self._scouts: dict[str, Scout] = {}  # in the order last asked for
+        self._lock = threading.Lock()
+
+    def get(self, key: str, make: Callable[[], Scout]) -> Scout:
+        """The running scout of ``key``, or a new one from ``make()`` (started)."""
+        gone: list[Scout] = []
+        with self._lock:
+            scout = self._scouts.pop(key, None)
+            if scout is None or scout.error is not None:
+                if scout is not None:
+                    gone.append(scout)
+                scout = make()
+            self._scouts[key] = scout
+            for old_key in list(self._scouts)[:-1]:
+                if len(self._scouts) <= self.size:
+                    break
+                if self._scouts[old_key].attached == 0:
+                    gone.append(self._scouts.pop(old_key))
+        for old in gone:
+            old.stop()
+        scout.start()
+        return scout
+
+    def close(self) -> None:
+        with self._lock:
+            scouts, self._scouts = list(self._scouts.values()), {}
+        for scout in scouts:
+            scout.stop()
+
+
 @dataclass
 class _Loop:
     """The replay thread's working state."""
@@ -234,7 +297,9 @@ class Replayer:
     def __init__(self, rec: Recording, make_engine: Callable[[], FusionEngine], sink: FrameSink,
                  speed: float | None = 1.0, checkpoint_interval_s: float | None = 10.0,
                  max_checkpoints: int = 20, shared: tuple[Any, ...] = (),
-                 scout: bool = False) -> None:
+                 scout: bool | Scout = False) -> None:
+        """``scout``: True, a scout of its own (stopped with the replay); a ``Scout``, one
+        shared with other replays of the same recording and engine (left running)."""
         self.rec = rec
         self._shared = shared  # engine inputs a snapshot shares instead of copying
         self._make_engine = make_engine
@@ -257,8 +322,9 @@ class Replayer:
         self._checkpoint_note: str | None = None
         self._thread = threading.Thread(target=self._run, name=f"replay-{rec.manifest.name}",
                                         daemon=True)
-        self.scout = Scout(rec, make_engine, self._needs_processor, shared,
-                           progress=lambda: self._sink.on_state(self._state)) if scout else None
+        self._own_scout = scout is True
+        self.scout = (Scout(rec, make_engine, shared) if scout is True
+                      else scout if isinstance(scout, Scout) else None)
 
     def _needs_processor(self) -> bool:
         """Whether the replay wants the processor now (the scout waits): seeking, running
@@ -281,6 +347,8 @@ class Replayer:
             self._seek_to = float(self.rec.manifest.start_gpst)
         self._thread.start()
         if self.scout is not None:
+            self.scout.attach(self, self._needs_processor,
+                              lambda: self._sink.on_state(self._state))
             self.scout.start()
 
     def play(self) -> bool:
@@ -319,7 +387,9 @@ class Replayer:
             self._stop = True
             self._cond.notify_all()
         if self.scout is not None:
-            self.scout.stop(timeout)
+            self.scout.detach(self)
+            if self._own_scout:
+                self.scout.stop(timeout)
         if self._thread.is_alive() and threading.current_thread() is not self._thread:
             self._thread.join(timeout)
 

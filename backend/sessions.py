@@ -41,7 +41,7 @@ from .catalog import RecordingCatalog
 from .errors import Conflict, NotFound, TooMany, Unprocessable
 from .history import History
 from .overlay import OverlayConfig, build_overlay, pose_dict, status_dict
-from .replay import FrameResult, Replayer, ReplayState
+from .replay import FrameResult, Replayer, ReplayState, Scout, ScoutPool
 from .targets import Target, TargetBook
 
 log = logging.getLogger(__name__)
@@ -88,10 +88,12 @@ class Session:
                  checkpoint_interval_s: float | None = 10.0,
                  body_height_m: float | None = None,
                  integrity: IntegrityConfig | None = None,
-                 runner: Callable[[Callable[[], FusionEngine], Session], Any] | None = None
-                 ) -> None:
+                 runner: Callable[[Callable[[], FusionEngine], Session], Any] | None = None,
+                 scouts: ScoutPool | None = None) -> None:
         """``runner``: what feeds the engine instead of a ``Replayer`` of ``rec`` (a live
-        source: ``backend.live_session``), made from the engine factory and the session."""
+        source: ``backend.live_session``), made from the engine factory and the session.
+        ``scouts``: where the look-ahead engine is shared from (else the replay has its own;
+        none when checkpoints are off)."""
         self.id = session_id
         self.name = name
         self.rec = rec
@@ -100,7 +102,8 @@ class Session:
         self.created = time.time()
         self.lock = threading.RLock()
         self.projector = Projector(rec.calibration.camera)
-        self.water = water_level(rec, body_height_m)
+        self.water, make_engine, scout_key = engine_setup(rec, engine_factory, options,
+                                                          integrity, body_height_m)
         self.overlay_config = OverlayConfig(prediction_seconds=prediction_seconds,
                                             water_down_m=self.water.down_m)
         self.history = History(rec, self.lock)
@@ -121,17 +124,14 @@ class Session:
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
         self.closers: list[Callable[[], None]] = []  # called when the session closes
-        engine_options = dict(options)
-        if integrity is not None:
-            engine_options["integrity"] = integrity
-        if self.water.known:
-            # The landmark refinement drops points on or below the water (reflections).
-            engine_options.setdefault("body_origin_height_m", self.water.down_m)
-        make_engine = lambda: engine_factory(rec.calibration, rec.nav, dict(engine_options))
         self.live = runner is not None
+        shared = (rec, rec.calibration, rec.nav)
+        scout: bool | Scout = checkpoint_interval_s is not None
+        if scout and scouts is not None:
+            scout = scouts.get(scout_key, lambda: Scout(rec, make_engine, shared))
         self.replayer = runner(make_engine, self) if runner is not None else Replayer(
             rec, make_engine, self, speed=speed, checkpoint_interval_s=checkpoint_interval_s,
-            shared=(rec, rec.calibration, rec.nav), scout=checkpoint_interval_s is not None)
+            shared=shared, scout=scout)
 
     @property
     def end_gpst(self) -> float:
@@ -489,6 +489,23 @@ def _live_brief(live: dict[str, Any] | None) -> dict[str, Any] | None:
 # ----------------------------------------------------------------------------- manager
 
 
+def engine_setup(rec: Recording, engine_factory: EngineFactory, options: dict[str, Any],
+                 integrity: IntegrityConfig | None, body_height_m: float | None
+                 ) -> tuple[WaterLevel, Callable[[], FusionEngine], str]:
+    """The water level of a session, how its engine is made, and the key of that engine
+    (sessions with the same key compute the same states: they may share a scout)."""
+    water = water_level(rec, body_height_m)
+    engine_options = dict(options)
+    if integrity is not None:
+        engine_options["integrity"] = integrity
+    if water.known:
+        # The landmark refinement drops points on or below the water (reflections).
+        engine_options.setdefault("body_origin_height_m", water.down_m)
+    key = json.dumps([str(rec.path), id(engine_factory), engine_options],
+                     sort_keys=True, default=repr)
+    return water, lambda: engine_factory(rec.calibration, rec.nav, dict(engine_options)), key
+
+
 class SessionManager:
     """Creates, finds and closes sessions (bounded: each one is a CPU-bound thread).
 
@@ -508,6 +525,8 @@ class SessionManager:
         self.abandoned_after_s = abandoned_after_s
         self.checkpoint_interval_s = checkpoint_interval_s
         self._sessions: dict[str, Session] = {}
+        # look-ahead engines shared by the sessions of one recording (none: checkpoints off)
+        self.scouts = ScoutPool() if checkpoint_interval_s is not None else None
         self._reserved = 0  # slots taken by creations under way
         self._lock = threading.Lock()
         self.created_listeners: list[Callable[[Session], None]] = []
@@ -533,7 +552,7 @@ class SessionManager:
             rec = self.catalog.load(recording)
             session = Session(uuid.uuid4().hex[:12], recording, rec, self.engine_factory,
                               options, speed, prediction_seconds, self.checkpoint_interval_s,
-                              body_height_m, self.integrity)
+                              body_height_m, self.integrity, scouts=self.scouts)
         finally:
             with self._lock:
                 self._reserved -= 1
@@ -603,12 +622,24 @@ class SessionManager:
                 log.exception("closed listener failed for session %s", session.id)
         _return_freed_memory()
 
+    def warm(self, recording: str, options: dict[str, Any]) -> None:
+        """Start the look-ahead engine of ``recording`` with ``options`` now, before anyone
+        opens it: the first page's seeks are then quick too."""
+        if self.scouts is None:
+            return
+        rec = self.catalog.load(recording)
+        _water, make_engine, key = engine_setup(rec, self.engine_factory, options,
+                                                self.integrity, None)
+        self.scouts.get(key, lambda: Scout(rec, make_engine, (rec, rec.calibration, rec.nav)))
+
     def close_all(self) -> None:
         for session in self.all():
             try:
                 self.delete(session.id)
             except NotFound:
                 pass
+        if self.scouts is not None:
+            self.scouts.close()
 
 
 def _load_malloc_trim() -> Callable[[int], int] | None:

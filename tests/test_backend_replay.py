@@ -205,6 +205,55 @@ def test_the_scout_runs_ahead_and_seeks_start_from_its_copies(rec: Recording):
     assert replayer.scout.checkpoint(float("inf")) is None  # the copies are released
 
 
+def test_sessions_of_one_recording_share_a_scout_and_the_server_warms_it(sim_recording: Path):
+    """The manager's sessions on the same recording and options share one scout: a second
+    session's seeks are quick at once, deleting a session leaves the scout to the others, and
+    ``warm`` starts it before any session. At most two are kept; an unused one goes."""
+    from backend.catalog import RecordingCatalog
+    from backend.models import FusionOptionsModel
+    from backend.replay import Scout, ScoutPool
+    from backend.sessions import SessionManager
+    from engine.driver import create_engine
+
+    manager = SessionManager(RecordingCatalog(None, sim_recording), create_engine)
+    name = manager.catalog.default_name()
+    options = FusionOptionsModel().model_dump()  # what a page opens a session with
+    try:
+        manager.warm(name, options)
+        assert manager.scouts is not None
+        (warm,) = manager.scouts._scouts.values()
+        wait_for(lambda: warm.done, 120)  # ran before any session was opened
+        a = manager.create(name, 1.0, options, paused=True)
+        b = manager.create(name, 1.0, options, paused=True)
+        assert a.replayer.scout is warm and b.replayer.scout is warm and warm.attached == 2
+        other = manager.create(name, 1.0, {**options, "use_vo": False}, paused=True)
+        assert other.replayer.scout is not warm  # other options: other states, its own
+        manager.delete(a.id)
+        assert warm.attached == 1 and warm.checkpoint(float("inf")) is not None  # still there
+        start = b.rec.manifest.start_gpst
+        tic = time.monotonic()
+        b.control("seek", 10.55, None)
+        wait_for(lambda: b.replayer.state == ReplayState.PAUSED
+                 and b.replayer.status()["time_gpst"] >= start + 10.5, 60)
+        recomputed = b.replayer.status()["frames_processed"]
+        assert b.history.latest() is not None and len(b.history.arrays()[0]) >= 90
+        print(f"seek in a session opened after the warm scout: {time.monotonic() - tic:.2f} s "
+              f"({recomputed} frames counted)")
+    finally:
+        manager.close_all()
+    assert warm.checkpoint(float("inf")) is None  # stopped with the server
+    # the pool keeps two: the least recently used one that nobody uses goes
+    pool = ScoutPool(size=2)
+    made = [pool.get(k, lambda: Scout(manager.catalog.load(name), SumEngine)) for k in "abc"]
+    try:
+        assert list(pool._scouts) == ["b", "c"] and made[0].checkpoint(float("inf")) is None
+        made[1].attach(made, lambda: True)  # "b" in use: not evicted; "c" is
+        pool.get("d", lambda: Scout(manager.catalog.load(name), SumEngine))
+        assert list(pool._scouts) == ["b", "d"]
+    finally:
+        pool.close()
+
+
 def test_real_time_pace_pause_and_speed(rec: Recording):
     sink = Sink()
     replayer = Replayer(rec, SumEngine, sink, speed=4.0)
