@@ -232,7 +232,7 @@ class Scout:
                     self._tell()
             self.done = True
             self._tell()
-        except Exception as exc:  # noqa: BLE001 - the replay goes on without look-ahead
+        except BaseException as exc:  # noqa: B036 - the replay goes on without look-ahead
             log.exception("the scout stopped")
             self.error = f"the look-ahead engine stopped: {exc!r}"
         finally:

@@ -62,7 +62,9 @@ def failures() -> list[BaseException]:
 @pytest.fixture(scope="module")
 def server(sim_recording: Path, rec: Recording, failures: list) -> Iterator[Live]:
     def factory(cal, nav, opts):
-        return FailingEngine(rec, failures.pop(0) if failures else None)
+        # the replay's own engine fails, not the look-ahead's (made in its "scout-" thread)
+        replay = threading.current_thread().name.startswith("replay-")
+        return FailingEngine(rec, failures.pop(0) if failures and replay else None)
 
     yield from serve(Settings(default_recording=sim_recording, viser_port=None,
                               engine_factory=factory), rec)
