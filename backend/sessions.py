@@ -362,7 +362,8 @@ class Session:
             "fusion": fused,
             "timing_ms": {k: round(float(v), 3) for k, v in self.timing().items()},
             "checkpoints_s": [round(c - self.start_gpst, 3) for c in replay["checkpoints"]],
-            "checkpoint_note": replay["checkpoint_note"],
+            # a look-ahead engine that failed is said here (seeks are then slower, no more)
+            "checkpoint_note": replay["checkpoint_note"] or replay.get("scout_error"),
             "scouted_s": None if replay.get("scouted_gpst") is None
             else round(replay["scouted_gpst"] - self.start_gpst, 3),
             "prediction_seconds": self.prediction_seconds,
