@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -581,10 +580,8 @@ def _read_numeric_csv(path: Path, columns: Sequence[str], torn: list[str] | None
 
 
 def _is_torn(path: Path, body: list[str], k: int) -> bool:
-    with path.open("rb") as f:
-        f.seek(-1, os.SEEK_END)
-        if f.read(1) in (b"\n", b"\r"):
-            return False
+    if rinex.ends_with_newline(path):
+        return False
     last = body[-1].split(",")
     if len(last) != k:
         return True

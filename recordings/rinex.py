@@ -453,7 +453,7 @@ def read_obs(path: str | Path, cut_ok: bool = False) -> ObsFile:
     name = str(p)
     lines = _lines(p)
     cut_short = None
-    if cut_ok and lines and not _ends_with_newline(p):
+    if cut_ok and lines and not ends_with_newline(p):
         cut_short = f"the last line ({len(lines)}) was cut short and is left out"
         lines = lines[:-1]
     if _check_first_line(name, lines, "O", "observation", versions=(2, 3)) < 3.0:
@@ -532,7 +532,8 @@ def read_obs(path: str | Path, cut_ok: bool = False) -> ObsFile:
     return ObsFile(path=name, header=header, epochs=epochs, events=events, cut_short=cut_short)
 
 
-def _ends_with_newline(path: Path) -> bool:
+def ends_with_newline(path: Path) -> bool:
+    """Whether a file's last byte ends a line (a record written whole, not torn)."""
     with path.open("rb") as f:
         f.seek(-1, os.SEEK_END)
         return f.read(1) in (b"\n", b"\r")
