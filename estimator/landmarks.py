@@ -392,7 +392,10 @@ class _Groups:
         self.empty = counts == 0
 
     def sum(self, values: np.ndarray) -> np.ndarray:
-        out = np.add.reduceat(values[self.order], self.starts, axis=0)
+        # A zero row after the last one: a last group with nothing in it starts there (one
+        # past the end, which ``reduceat`` refuses: a view whose points all left the window).
+        pad = np.zeros((1, *values.shape[1:]), values.dtype)
+        out = np.add.reduceat(np.concatenate([values[self.order], pad]), self.starts, axis=0)
         out[self.empty] = 0.0
         return out
 

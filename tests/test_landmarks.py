@@ -309,3 +309,16 @@ def test_fusion_structure_uses_refined_landmarks():
     assert sig[1] == pytest.approx(0.1)
     off = Fusion(cal, NavigationData(), FusionOptions(landmarks=None))
     assert off.landmarks is None
+
+
+def test_sums_by_group_with_empty_groups_anywhere():
+    """The joint window sums its observations by view: a view none of whose points is still
+    in the window — the last one included (small-boat seed 20 stopped the engine there) —
+    sums to zero, and the others are unchanged."""
+    from estimator.landmarks import _Groups
+
+    values = np.arange(1.0, 7.0)[:, None] * np.ones((1, 2))
+    group = np.array([3, 0, 3, 0, 1, 3])  # groups 2 and 4 (the last) are empty
+    sums = _Groups(group, 5).sum(values)
+    np.testing.assert_array_equal(sums[:, 0], [2 + 4, 5, 0, 1 + 3 + 6, 0])
+    assert _Groups(np.zeros(0, int), 2).sum(np.zeros((0, 3))).shape == (2, 3)
