@@ -212,12 +212,15 @@ def triangulate_point(C_level_to_camera: np.ndarray, camera_position_ned: np.nda
     they are trusted (a tracked point's: nearest the click first), and a prior
     (``x_prior``, inverse covariance ``info_prior``).
 
-    The rays are taken ``chunk`` at a time, each gated against the point so far (its
-    distance from the ray against the ray's noise and the point's covariance; χ², 2 dof,
-    99.9 %). A track that slipped onto another feature at its far end would pull the point
-    if taken at once; here its rays are left out, and so is everything after a chunk mostly
-    rejected (the track is not trusted past where it disagrees). Returns (position, inverse
-    covariance, mask of the rays used)."""
+    Only the rays that agree on a point along the prior's long axis are taken, and the prior
+    is widened to that point when it disagrees (``_consensus_on_prior_axis``). They are
+    taken ``chunk`` at a time, each gated against the point so far (the prior for the first
+    chunk): its distance from the ray against the ray's noise and the point's covariance
+    (χ², 2 dof, 99.9 %). A track that slipped onto
+    another feature at its far end would pull the point if taken at once; here its rays are
+    left out, and so is everything after a chunk mostly rejected (the track is not trusted
+    past where it disagrees). Returns (position, inverse covariance, mask of the rays
+    used)."""
     C = np.asarray(C_level_to_camera, float).reshape(-1, 3, 3)
     o = np.asarray(camera_position_ned, float).reshape(-1, 3)
     xy = np.asarray(xy, float).reshape(-1, 2)
@@ -228,6 +231,12 @@ def triangulate_point(C_level_to_camera: np.ndarray, camera_position_ned: np.nda
     rays = np.einsum("nji,nj->ni", np.nan_to_num(C), np.column_stack([np.nan_to_num(xy),
                                                                       np.ones(len(xy))]))
     rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    agree, consensus, prior_agrees = _consensus_on_prior_axis(x0[0], info0[0], rays, o,
+                                                              ray_var, valid)
+    valid &= agree
+    if not prior_agrees:  # the prior widened to take in the point its views agree on
+        gap = consensus - x0[0]
+        info0 = np.linalg.inv(np.linalg.inv(info0[0]) + np.outer(gap, gap))[None]
     used = np.zeros(len(xy), bool)
     X, A = x0, info0
     for start in range(0, len(xy), chunk):
@@ -235,11 +244,12 @@ def triangulate_point(C_level_to_camera: np.ndarray, camera_position_ned: np.nda
         idx = idx[valid[idx]]
         if not len(idx):
             continue
-        if used.any():
-            ok = _ray_chi2(X[0], np.linalg.inv(A[0]), rays[idx], o[idx], ray_var[idx]) <= gate
-            if 2 * ok.sum() < len(idx):
-                break
-            idx = idx[ok]
+        # The first chunk is gated against the prior: rays that cross near their cameras
+        # (a track that jumped between look-alikes) would otherwise "triangulate" there.
+        ok = _ray_chi2(X[0], np.linalg.inv(A[0]), rays[idx], o[idx], ray_var[idx]) <= gate
+        if 2 * ok.sum() < len(idx):
+            break
+        idx = idx[ok]
         used[idx] = True
         n = int(used.sum())
         point_of = np.zeros(n, np.int64)
@@ -248,6 +258,67 @@ def triangulate_point(C_level_to_camera: np.ndarray, camera_position_ned: np.nda
                                      _Groups(point_of, 1), xy[used], X, 1.0 / ray_var[used],
                                      x0, info0)
     return X[0], A[0], used
+
+
+def common_rotation_jacobian(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                             xy: np.ndarray, ray_var: np.ndarray, X: np.ndarray,
+                             x_prior: np.ndarray, info_prior: np.ndarray, step: float = 1e-3,
+                             iterations: int = 3) -> np.ndarray:
+    """d(point)/d(e): how the point triangulated from these views (``triangulate_point``'s
+    used ones) moves when all their attitudes share a small-angle error ``e`` (in L,
+    ``Ĉ = (I + [e×]) C`` as the EKF has it). The structure window keeps the fused common
+    rotation, so the fused attitude's error is common to every view: no number of views
+    averages it out, and ``J P_e Jᵀ`` belongs in the point's covariance."""
+    C = np.asarray(C_level_to_camera, float).reshape(-1, 3, 3)
+    n = len(C)
+    point_of = np.zeros(n, np.int64)
+    x0 = np.asarray(x_prior, float).reshape(1, 3)
+    info0 = np.asarray(info_prior, float).reshape(1, 3, 3)
+    J = np.zeros((3, 3))
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = step
+        Ck = C @ (np.eye(3) - skew(e))  # rays in L turned by (I + [e×])
+        Xk = np.asarray(X, float).reshape(1, 3)
+        for _ in range(iterations):
+            Xk, _ = _triangulate_rays(Ck, camera_position_ned, np.arange(n), point_of,
+                                      _Groups(point_of, 1), xy, Xk, 1.0 / ray_var, x0, info0)
+        J[:, k] = (Xk[0] - np.asarray(X, float)) / step
+    return J
+
+
+def _consensus_on_prior_axis(x0: np.ndarray, info0: np.ndarray, rays: np.ndarray,
+                             centres: np.ndarray, ray_var: np.ndarray, valid: np.ndarray,
+                             steps: int = 241, limit: float = 4.0
+                             ) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The rays that agree on one point of the prior's long axis (a click's ray). Points of
+    that axis from a fifth to four times the prior's range are tried; the one where the
+    rays' squared angular residuals over their variance — and the prior's own, counted as
+    one more view — capped at ``limit`` sum least is the consensus (MSAC); a ray agrees when
+    its residual there is within the cap. Returns (mask of the agreeing rays, the consensus
+    point, whether the prior agrees with it).
+
+    A stretch of a track that slid over a moored boat's edge and back disagrees with the
+    views before and after it, however gradually it slid (gated one chunk at a time, in
+    trust order, its first rays would pull the point instead); a click's point taken from
+    the facade behind a ladder disagrees with the ladder's views."""
+    P0 = np.linalg.inv(info0)
+    lam, vec = np.linalg.eigh(P0)
+    u, sigma = vec[:, -1], float(np.sqrt(max(lam[-1], 1e-12)))
+    first = centres[int(np.argmax(valid))] if valid.any() else x0 - u
+    if (x0 - first) @ u < 0.0:
+        u = -u  # away from the cameras
+    r0 = float(np.linalg.norm(x0 - first))
+    s = r0 * (np.unique(np.append(np.geomspace(0.2, 4.0, steps), 1.0)) - 1.0)
+    X = x0 + s[:, None] * u  # (G,3) candidate points
+    d = X[:, None, :] - centres[None]  # (G,n,3)
+    along = np.einsum("gni,ni->gn", d, rays)
+    cos2 = along**2 / np.maximum(np.sum(d**2, axis=2), 1e-12)
+    chi2 = np.where(along > 0.0, (1.0 - cos2) / ray_var, np.inf)
+    prior = (s / sigma) ** 2
+    cost = np.where(valid, np.minimum(chi2, limit), 0.0).sum(axis=1) + np.minimum(prior, limit)
+    best = int(np.argmin(cost))
+    return chi2[best] <= limit, X[best], bool(prior[best] <= limit)
 
 
 def _ray_chi2(X: np.ndarray, P: np.ndarray, rays: np.ndarray, centres: np.ndarray,

@@ -72,6 +72,7 @@ from .landmarks import (
     LandmarkMap,
     LandmarkParams,
     SolvedViews,
+    common_rotation_jacobian,
     converged,
     ray_prior,
     triangulate_point,
@@ -89,8 +90,14 @@ class TrackerParams:
     n_features: int = 200  # good features to track for the mean flow
     flow_region: float = 5.0  # features within this many window sizes around the target
     flow_min_features: int = 8  # fewer inliers: the whole image's features are used
+    flow_margin_px: int = 48  # image around the features' region the flow is computed on
     search_px: int = 24  # template search margin around the predicted position
     lost_search_px: int = 48  # ... while lost (dead-reckoned position)
+    # ``follow_flow`` (a track that must not jump): template searched this close to where
+    # the mean flow puts the point. A row of fenders or a repeated facade puts look-alikes
+    # within ``search_px``; one frame's motion is rarely this far from the mean flow.
+    flow_search_px: int = 8
+    flow_search_features: int = 40  # ... the mean flow of this many features (a fifth the cost)
     lost_score: float = 0.55  # N below this: target lost
     reacquire_score: float = 0.75  # N needed to take a lost target back
     adapt_min_score: float = 0.8  # template adapted only above this (same point) ...
@@ -228,6 +235,34 @@ class TargetTracker:
         return TrackResult(uv=None, score=score, status="lost", particles=self.particles.copy(),
                            uv_match=None if match is None else match[0],
                            reason="not found near the predicted position")
+
+    def follow_flow(self, image: np.ndarray) -> TrackResult:
+        """One frame, the template matched only within ``flow_search_px`` of where the mean
+        LK flow around the point moves it (no particles, no colour): a track that loses the
+        point rather than jump to a look-alike. ``DesignatedTarget`` tracks the click back
+        with it, where nothing else checks the track (the forward one is checked by its 3-D
+        point)."""
+        if self.template is None or self._prev_gray is None or self.uv is None:
+            raise RuntimeError("TargetTracker.follow_flow before init")
+        p = self.params
+        gray = _gray(image)
+        self.frames += 1
+        predicted = self.uv + self._mean_flow(self._prev_gray, gray, self.uv,
+                                              p.flow_search_features)
+        self._prev_gray = gray
+        size = np.array(gray.shape[::-1], float)
+        empty = np.zeros((0, 2))
+        match = _match(gray, self.template, predicted, p.flow_search_px)
+        if match is None or match[1] < p.lost_score or not self._inside(match[0], size):
+            return self._declare_lost(predicted, empty, np.zeros(2), size,
+                                      -1.0 if match is None else match[1],
+                                      "no match near where the image flow puts the point")
+        q, score = match
+        q = self._anchor(gray, q)
+        self._adapt(gray, q, score)
+        self.uv = q.copy()
+        return TrackResult(uv=q.copy(), score=score, status="tracking", particles=empty,
+                           uv_match=q.copy())
 
     def hold(self, image: np.ndarray, reason: str = "lost") -> TrackResult:
         """Mark the target lost on ``image`` (the next ``update`` follows from it)."""
@@ -417,7 +452,8 @@ class TargetTracker:
             self.template = _crop(gray, q, self.window)
             self.adaptations += 1
 
-    def _mean_flow(self, prev: np.ndarray, cur: np.ndarray, around: np.ndarray) -> np.ndarray:
+    def _mean_flow(self, prev: np.ndarray, cur: np.ndarray, around: np.ndarray,
+                   n_features: int | None = None) -> np.ndarray:
         """ō: robust mean LK flow of good features around ``around`` (whole image if few)."""
         p = self.params
         h, w = prev.shape
@@ -432,11 +468,16 @@ class TargetTracker:
                 y1 = int(min(h, around[1] + region[1] + 1))
                 if x1 - x0 < 16 or y1 - y0 < 16:
                     continue
-            pts = cv2.goodFeaturesToTrack(prev[y0:y1, x0:x1], p.n_features, 0.01, 5)
+            pts = cv2.goodFeaturesToTrack(prev[y0:y1, x0:x1], n_features or p.n_features,
+                                          0.01, 5)
             if pts is None or len(pts) < p.flow_min_features:
                 continue
-            pts = pts.reshape(-1, 2) + np.array([x0, y0], np.float32)
-            flow = _lk_flow(prev, cur, pts)
+            # LK on the region and a margin, not the whole frame: its pyramids are most of
+            # its cost.
+            m = p.flow_margin_px
+            X0, Y0, X1, Y1 = max(0, x0 - m), max(0, y0 - m), min(w, x1 + m), min(h, y1 + m)
+            pts = pts.reshape(-1, 2) + np.array([x0 - X0, y0 - Y0], np.float32)
+            flow = _lk_flow(prev[Y0:Y1, X0:X1], cur[Y0:Y1, X0:X1], pts)
             if len(flow) >= p.flow_min_features:
                 return _robust_mean(flow)
         return np.zeros(2)
@@ -757,6 +798,9 @@ class DesignatedTarget:
         t = float(view.t)
         self.click_time = t  # views nearest it are trusted first (``refine``)
         self.refined_views = 0  # views of the last ``refine`` (0: the point is not refined)
+        # the fused attitude's covariance at the last view: its error is common to the views
+        # ``refine`` triangulates in (``common_rotation_jacobian``)
+        self.attitude_cov: np.ndarray | None = None
         self.seen = _SeenViews()
         if refine and math.isfinite(t):
             self._track_back(image, np.asarray(uv, float), t, earlier_frames)
@@ -908,13 +952,21 @@ class DesignatedTarget:
         n = int(used.sum())
         if n < self.params.min_refine_views or not np.isfinite(X).all():
             return 0
-        self.map.x[0], self.map.P[0] = X, np.linalg.inv(info)
+        P = np.linalg.inv(info)
+        if self.attitude_cov is not None:
+            u = rows[used]
+            J = common_rotation_jacobian(seen.C[u], seen.centre[u], seen.xy[u],
+                                         pixel_var + seen.rotation_var[u], X, X0,
+                                         np.linalg.inv(P0))
+            P = P + J @ self.attitude_cov @ J.T
+        self.map.x[0], self.map.P[0] = X, P
         self.refined_views = n
         return n
 
     def _track_back(self, image: np.ndarray, uv: np.ndarray, t: float,
                     earlier_frames: Sequence[tuple[float, np.ndarray]]) -> None:
-        """The click's template tracked back through the frames before it (newest first)
+        """The click's template tracked back through the frames before it (newest first),
+        following the image flow (``TargetTracker.follow_flow``: no jump to a look-alike)
         until it is lost or ``track_back_s`` is reached; its pixels kept as views."""
         back = TargetTracker(method="template")
         back.init(_gray(image), uv, self.params.window)
@@ -922,7 +974,7 @@ class DesignatedTarget:
         for t_k, img in reversed(earlier_frames):
             if not t - self.params.track_back_s <= t_k < t:
                 continue
-            res = back.update(_gray(img))
+            res = back.follow_flow(img)
             if res.status != "tracking" or res.uv is None:
                 break
             seen.append((float(t_k), res.uv))
@@ -935,6 +987,8 @@ class DesignatedTarget:
         """One tracked view of the 3-D point (kept for ``refine``); False when its χ² gate
         rejects it."""
         C, c, pose_cov, t = view.C_level_to_camera, view.position_ned, view.pose_cov, view.t
+        if pose_cov is not None:
+            self.attitude_cov = np.asarray(pose_cov, float)[3:, 3:]
         xy = cv2.undistortPoints(np.asarray(uv, np.float64).reshape(1, 1, 2), self._K,
                                  self._dist).reshape(1, 2)
         kept = self.map.x[0].copy(), self.map.P[0].copy()

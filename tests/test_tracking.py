@@ -390,6 +390,73 @@ def test_triangulation_drops_a_slipped_track():
                                   [0, -1, -1, 3, -1])
 
 
+def test_triangulation_gates_its_first_views_against_the_prior():
+    """Seed 9's fender: the track back from the click jumped to a look-alike 6° aside within
+    the first ten views. Taken ungated, rays that diverge from nearby cameras "meet" at the
+    cameras, with a 2 cm σ 21 m short; gated against the click's point they are left out."""
+    from estimator.landmarks import triangulate_point
+    n = 10
+    X = np.array([2.0, 0.0, 21.0])  # the camera looks along +z
+    centres = np.column_stack([np.zeros(n), np.zeros(n), -0.3 * np.arange(n)])
+    C = np.repeat(np.eye(3)[None], n, axis=0)
+    xy = (X[:2] - centres[:, :2]) / (X[2] - centres[:, 2:])
+    look_alike = X + np.array([2.2, 0.0, 0.0])  # 6° aside at 21 m
+    xy[6:] = ((look_alike[:2] - centres[:, :2]) / (look_alike[2] - centres[:, 2:]))[6:]
+    var = np.full(n, (1.5 / 800) ** 2)
+    P0 = np.diag([0.05, 0.05, 0.7]) ** 2  # tight across the click's ray, 0.7 m along it
+    est, info, used = triangulate_point(C, centres, xy, var, X + [0.0, 0.0, 0.25],
+                                        np.linalg.inv(P0))
+    assert used[:6].all() and not used[6:].any()
+    sigma = np.sqrt(np.diag(np.linalg.inv(info)))
+    assert abs(est[2] - X[2]) <= 2 * sigma[2] and np.linalg.norm(est - X) < 0.5
+
+
+def test_triangulation_leaves_out_a_stretch_that_slid_and_came_back():
+    """Seed 1's quay point: tracked back past a moored boat, the template slid up to 15 px
+    with the boat's edge over 10 s, then came back onto the wall. One chunk at a time, the
+    slow slide's first rays pass the gate and pull the point along the click's ray; the
+    consensus along that ray leaves the whole stretch out."""
+    from estimator.landmarks import triangulate_point
+    m = 120
+    centres = np.column_stack([np.linspace(0, -12, m), np.linspace(0, -3, m), np.zeros(m)])
+    C = np.repeat(np.eye(3)[None], m, axis=0)
+    X = np.array([4.0, 1.0, 20.0])
+    xy = (X[:2] - centres[:, :2]) / (X[2] - centres[:, 2:])
+    slide = np.interp(np.arange(m), [20, 60, 100], [0.0, 15.0, 0.0]) / 800  # px → rad
+    xy[:, 0] += slide
+    var = np.full(m, (1.5 / 800) ** 2)
+    u = X / np.linalg.norm(X)
+    P0 = 0.05**2 * np.eye(3) + (1.5**2 - 0.05**2) * np.outer(u, u)  # the click: 1.5 m along
+    est, info, used = triangulate_point(C, centres, xy, var, X + 0.4 * u, np.linalg.inv(P0))
+    assert not used[35:85].any() and used[:20].all() and used[100:].all()
+    sigma_along = float(np.sqrt(u @ np.linalg.inv(info) @ u))
+    assert abs((est - X) @ u) < max(0.05, 2 * sigma_along), (est - X, sigma_along)
+
+
+def test_track_back_follows_the_image_flow_not_a_look_alike():
+    """A row of identical fenders on a plain band of a textured wall moving 9 px a frame: the
+    template search alone (±34 px) finds the same best score on the neighbour it reaches
+    first; the flow of the wall's texture around the point puts the search on the right
+    one."""
+    rng = np.random.default_rng(5)
+    wall = cv2.GaussianBlur(rng.integers(0, 255, (400, 1400), dtype=np.uint8), (5, 5), 0)
+    wall = (0.35 * wall + 80).astype(np.uint8)
+    wall[175:222] = 120  # a plain band (painted concrete) ...
+    for x in range(60, 1400, 24):  # ... with fenders 24 px apart: 12×16 px dark boards
+        wall[190:206, x - 6:x + 6] = 20
+    frames = [wall[100:300, 400 - 9 * k:1040 - 9 * k].copy() for k in range(12)]
+    start = np.array([316.0, 98.0])  # a fender's centre in frame 0 (x = 716 on the wall)
+    plain, guided = TargetTracker(method="template"), TargetTracker(method="template")
+    for tr in (plain, guided):
+        tr.init(frames[0], start, 31)
+    for k in range(1, len(frames)):
+        truth = start + [9.0 * k, 0.0]
+        r = guided.follow_flow(frames[k])
+        assert r.status == "tracking" and np.linalg.norm(r.uv - truth) < 1.0, (k, r.uv, truth)
+        plain.update(frames[k])
+    assert np.linalg.norm(plain.uv - (start + [9.0 * 11, 0.0])) > 10.0  # the plain one slipped
+
+
 def test_nearest_surface_prefers_the_foreground_unless_a_point_is_clicked():
     ranges = np.array([61.0, 20.5, 63.0, 21.0, 45.0])
     pixels = np.array([2.5, 9.0, 6.0, 11.0, 7.0])
@@ -473,3 +540,25 @@ def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
     views = [row["views"] for row in lm["error_vs_views"]]
     assert views == sorted(views)
     assert "Designated-target tracking" in format_tracking_report(typed, lm_typed)
+
+
+def test_a_common_attitude_error_moves_the_triangulated_point():
+    """Views along a 10 m baseline whose attitudes share a 0.1° error: the point they
+    triangulate moves as ``common_rotation_jacobian`` says (against a re-triangulation), by
+    centimetres at 20 m — which is why it is added to a refined target's covariance."""
+    from estimator.landmarks import common_rotation_jacobian, triangulate_point
+    m = 40
+    centres = np.column_stack([np.linspace(0, 10, m), np.zeros(m), np.zeros(m)])
+    C = np.repeat(np.eye(3)[None], m, axis=0)
+    X = np.array([3.0, 4.0, 20.0])
+    xy = (X[:2] - centres[:, :2]) / (X[2] - centres[:, 2:])
+    var = np.full(m, (1.0 / 800) ** 2)
+    prior = (X + [0.0, 0.0, 1.0], np.eye(3) / 25.0)
+    est, _, used = triangulate_point(C, centres, xy, var, *prior)
+    J = common_rotation_jacobian(C, centres, xy, var, est, *prior)
+    from estimator.frames import skew
+    e = np.radians([0.1, 0.0, 0.0])  # about an axis across the line of sight
+    turned = C @ (np.eye(3) - skew(e))
+    moved, _, _ = triangulate_point(turned, centres, xy, var, *prior)
+    assert used.all() and np.linalg.norm(moved - est) > 0.02
+    np.testing.assert_allclose(J @ e, moved - est, atol=0.1 * np.linalg.norm(moved - est))
