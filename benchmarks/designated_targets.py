@@ -1,0 +1,97 @@
+"""Designated-target distances over many recordings (issue 17): the share of tracked frames
+whose distance is within tolerance (max(0.1 m, 1 %)) and within 2σ, per recording and their
+worst and median, with each click's median error.
+
+    .venv/bin/python benchmarks/designated_targets.py RECORDING [RECORDING ...]
+        [--json OUT.json]
+
+Each recording (with a reference and scene points: a simulated one, e.g. the campaign's
+cache ``DIR/small-boat-seed7-60s-sim…``) is replayed with the replay report's own functions:
+the VO once, the full fusion keeping the port structure from the first click on, then the
+server's path for each click (``evaluation.tracking``, ``designated`` only: no ablations).
+The clicks are the report's (quay points at 45, 52, … s). About a minute per 60 s recording.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from estimator.pipeline import FusionOptions  # noqa: E402
+from evaluation.report import CLICK_END_MARGIN_S, ReportOptions, run_set  # noqa: E402
+from evaluation.runs import Collect  # noqa: E402
+from evaluation.tracking import DESIGNATED, evaluate_tracking  # noqa: E402
+from evaluation.truth import DEFAULT_CLICK_TIMES_S, default_clicks  # noqa: E402
+from recordings.format import load  # noqa: E402
+
+
+def evaluate(path: Path) -> dict:
+    """One recording's designated-target figures (clicks as in ``replay --report``)."""
+    rec = load(path)
+    opt = ReportOptions()
+    rs = run_set(rec, opt, lambda _text: None)
+    full = FusionOptions(keep_after_s=opt.init_s,
+                         body_origin_height_m=rec.hull.body_origin_height_m, **opt.fusion)
+    times = [t for t in DEFAULT_CLICK_TIMES_S if t < rs.duration - CLICK_END_MARGIN_S]
+    clicks = [c for c in default_clicks(rec, times_s=times) if c.frame < len(rs.vo.outputs)]
+    if not clicks:
+        return {"recording": path.name, "clicks": 0}
+    first = min(c.frame for c in clicks)
+    run = rs.fuse("designated targets", full, Collect(structures_from=first, landmarks=True))
+    report = evaluate_tracking(rec, run, clicks, methods=(DESIGNATED,))
+    scores = report.methods.get(DESIGNATED)
+    if scores is None or scores.distance_m is None:
+        return {"recording": path.name, "clicks": 0, "reason": report.reason}
+    return {"recording": path.name, "clicks": len(clicks),
+            "frames": scores.distance_m.n,
+            "within_tolerance": scores.distance_m.within_tolerance,
+            "within_2_sigma": scores.distance_within_2_sigma,
+            "median_m": scores.distance_m.median,
+            "per_click_median_m": [
+                (c.label, c.per_method[DESIGNATED].distance_error_median_m)
+                for c in report.clicks if c.per_method]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("recordings", nargs="+", type=Path)
+    ap.add_argument("--json", type=Path, help="write the rows and the summary here")
+    args = ap.parse_args()
+    rows = []
+    for path in tqdm(args.recordings, desc="recordings", unit="rec"):
+        try:
+            rows.append(evaluate(path))
+        except Exception as exc:  # noqa: BLE001 — one bad recording does not stop the rest
+            rows.append({"recording": path.name, "error": f"{type(exc).__name__}: {exc}"})
+    print(f"{'recording':<40} {'tol':>5} {'2σ':>5} {'median':>7}  per-click median error (m)")
+    for r in rows:
+        if "error" in r or not r.get("clicks"):
+            print(f"{r['recording']:<40} {r.get('error') or r.get('reason') or 'no click'}")
+            continue
+        clicks = " ".join(f"{e:.2f}" for _label, e in r["per_click_median_m"] if e is not None)
+        print(f"{r['recording']:<40} {r['within_tolerance']:>5.2f} {r['within_2_sigma']:>5.2f} "
+              f"{r['median_m']:>7.3f}  {clicks}")
+    scored = [r for r in rows if r.get("clicks") and "error" not in r]
+    summary = {}
+    for key in ("within_tolerance", "within_2_sigma"):
+        have = [r for r in scored if r.get(key) is not None]
+        if have:
+            vals = np.array([r[key] for r in have], float)
+            worst = have[int(np.argmin(vals))]["recording"]
+            summary[key] = {"worst": float(vals.min()), "median": float(np.median(vals)),
+                            "worst_recording": worst}
+            print(f"{key}: worst {vals.min():.2f} ({worst}), median {np.median(vals):.2f} "
+                  f"over {len(vals)} recordings")
+    if args.json:
+        args.json.write_text(json.dumps({"rows": rows, "summary": summary}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
