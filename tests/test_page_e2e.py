@@ -530,6 +530,20 @@ def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
                           f"&& f.overlay.targets[0].id !== '{t1['id']}'")
     assert f3["overlay"]["targets"][0]["id"] != t1["id"]
 
+    # three targets a few pixels apart (a ladder and the fenders beside it): each label is
+    # drawn where no other covers it
+    boxes = page.evaluate("""() => {
+      const f = structuredClone(window.berthing.frame), t = f.overlay.targets[0];
+      f.overlay.targets = [0, 1, 2].map((k) => ({...t, id: `T${k}`, label: `T${k}`,
+        uv: [f.width / 2 + 6 * k, f.height / 2 + 4 * k], visible: true}));
+      window.berthing.show(f);
+      return window.berthing.labels;
+    }""")
+    assert len(boxes) == 3
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1], (a, b)
+
 
 def test_berth_line_from_two_clicks_gives_bow_and_stern(page) -> None:
     # the recording's own berth line is drawn on the quay's water line: the officer's two

@@ -85,6 +85,7 @@ window.berthing = {
   get session() { return app.session; },
   get colors() { return colors(); },
   get plan() { return plan.view; },
+  get labels() { return app.labels || []; }, // the targets' label boxes drawn (CSS px)
   get toasts() { return [...toasts]; },
   get stats() { return { frames: stream.frames, dropped: stream.dropped, connection: stream.state }; },
   get alarms() {
@@ -111,7 +112,7 @@ function render() {
     allPoints: el.allPoints.checked,
   };
   if (f && app.view) {
-    drawOverlay(el.overlay, f, app.view, { ...opts, picks: picksIn("image") });
+    app.labels = drawOverlay(el.overlay, f, app.view, { ...opts, picks: picksIn("image") });
   }
   plan.draw(f, { ...opts, picks: picksIn("plan") });
   const level = panel.update(f, app.trust.trusted);

@@ -57,7 +57,7 @@ export function drawOverlay(canvas, frame, view, opts) {
   ctx.setTransform(1, 0, 0, 1, 0, 0);
   ctx.clearRect(0, 0, canvas.width, canvas.height);
   const ov = frame?.overlay;
-  if (!ov) return;
+  if (!ov) return [];
   // image pixels → device pixels in one transform; line widths are divided by the scale so
   // they stay the same on screen whatever the window size.
   ctx.setTransform(view.dpr * view.scale, 0, 0, view.dpr * view.scale,
@@ -85,12 +85,15 @@ export function drawOverlay(canvas, frame, view, opts) {
   if (ov.berth?.polylines?.length) labelBerth(ctx, ov.berth, view, c);
   labelPrediction(ctx, ov.video.prediction, opts.predictSeconds, view, c);
   for (const p of opts.picks || []) drawPick(ctx, toCss(view, p[0], p[1]), c);
+  const placed = []; // label boxes so far: targets close together keep readable labels
   for (const t of ov.targets || []) {
     if (t.visible && t.uv) {
-      drawTarget(ctx, toCss(view, t.uv[0], t.uv[1]), t, c, opts.trusted, view.ox + view.srcW * view.scale);
+      drawTarget(ctx, toCss(view, t.uv[0], t.uv[1]), t, c, opts.trusted,
+        view.ox + view.srcW * view.scale, placed);
     }
   }
   ctx.filter = "none";
+  return placed;
 }
 
 /** "N s" beside the bow of each predicted outline, skipping labels that would overlap. */
@@ -197,7 +200,7 @@ function labelBerth(ctx, berth, view, c) {
   label(ctx, x + 8, y + 16, text, c.berth, c.targetBg, 12);
 }
 
-function drawTarget(ctx, [x, y], t, c, trusted, right) {
+function drawTarget(ctx, [x, y], t, c, trusted, right, placed) {
   const col = trusted ? c.target : c.untrusted;
   ctx.lineWidth = 4;
   ctx.strokeStyle = "rgba(0,0,0,0.6)";
@@ -209,8 +212,20 @@ function drawTarget(ctx, [x, y], t, c, trusted, right) {
   const text = `${name}  ${fmtDistance(t.distance_m)} m`;
   ctx.font = "700 17px system-ui, sans-serif";
   const w = ctx.measureText(text).width;
-  // right of the mark, or left of it near the right edge of the picture
-  label(ctx, x + 14 + w + 6 > right ? x - 14 - w : x + 14, y - 16, text, col, c.targetBg, 17);
+  // right of the mark, or left of it near the right edge of the picture; above it, else
+  // below it, else further down: the first place no other target's label covers
+  const side = x + 14 + w + 6 > right ? [x - 14 - w, x + 14] : [x + 14, x - 14 - w];
+  const rows = [y - 16, y + 20, y - 42, y + 46, y - 68, y + 72];
+  const box = (lx, ly) => [lx - 4, ly - 12.5, lx + w + 4, ly + 12.5];
+  const free = (b) => !placed.some((q) => b[0] < q[2] && q[0] < b[2] && b[1] < q[3] && q[1] < b[3]);
+  let at = [side[0], rows[0]];
+  search: for (const ly of rows) {
+    for (const lx of side) {
+      if (free(box(lx, ly))) { at = [lx, ly]; break search; }
+    }
+  }
+  placed.push(box(at[0], at[1]));
+  label(ctx, at[0], at[1], text, col, c.targetBg, 17);
 }
 
 function ring(ctx, x, y) {
