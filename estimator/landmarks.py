@@ -216,11 +216,10 @@ def triangulate_point(C_level_to_camera: np.ndarray, camera_position_ned: np.nda
     is widened to that point when it disagrees (``_consensus_on_prior_axis``). They are
     taken ``chunk`` at a time, each gated against the point so far (the prior for the first
     chunk): its distance from the ray against the ray's noise and the point's covariance
-    (χ², 2 dof, 99.9 %). A track that slipped onto
-    another feature at its far end would pull the point if taken at once; here its rays are
-    left out, and so is everything after a chunk mostly rejected (the track is not trusted
-    past where it disagrees). Returns (position, inverse covariance, mask of the rays
-    used)."""
+    (χ², 2 dof, 99.9 %). A track that slipped onto another feature at its far end would pull
+    the point if taken at once; here its rays are left out, and so is everything after a
+    chunk mostly rejected (the track is not trusted past where it disagrees). Returns
+    (position, inverse covariance, mask of the rays used)."""
     C = np.asarray(C_level_to_camera, float).reshape(-1, 3, 3)
     o = np.asarray(camera_position_ned, float).reshape(-1, 3)
     xy = np.asarray(xy, float).reshape(-1, 2)
