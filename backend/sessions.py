@@ -125,7 +125,7 @@ class Session:
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
         self.closers: list[Callable[[], None]] = []  # called when the session closes
         self.live = runner is not None
-        shared = (rec, rec.calibration, rec.nav)
+        shared = engine_inputs(rec)
         scout: bool | Scout = checkpoint_interval_s is not None
         if scout and scouts is not None:
             scout = scouts.get(scout_key, lambda: Scout(rec, make_engine, shared))
@@ -490,6 +490,12 @@ def _live_brief(live: dict[str, Any] | None) -> dict[str, Any] | None:
 # ----------------------------------------------------------------------------- manager
 
 
+def engine_inputs(rec: Recording) -> tuple[Any, ...]:
+    """What an engine reads but never changes: its copies (checkpoints, the scout's) share
+    these instead of copying them."""
+    return rec, rec.calibration, rec.nav
+
+
 def engine_setup(rec: Recording, engine_factory: EngineFactory, options: dict[str, Any],
                  integrity: IntegrityConfig | None, body_height_m: float | None
                  ) -> tuple[WaterLevel, Callable[[], FusionEngine], str]:
@@ -631,7 +637,7 @@ class SessionManager:
         rec = self.catalog.load(recording)
         _water, make_engine, key = engine_setup(rec, self.engine_factory, options,
                                                 self.integrity, None)
-        self.scouts.get(key, lambda: Scout(rec, make_engine, (rec, rec.calibration, rec.nav)))
+        self.scouts.get(key, lambda: Scout(rec, make_engine, engine_inputs(rec)))
 
     def close_all(self) -> None:
         for session in self.all():

@@ -6,10 +6,10 @@ worst and median, with each click's median error.
         [--json OUT.json]
 
 Each recording (with a reference and scene points: a simulated one, e.g. the campaign's
-cache ``DIR/small-boat-seed7-60s-sim…``) is replayed with the replay report's own functions:
-the VO once, the full fusion keeping the port structure from the first click on, then the
-server's path for each click (``evaluation.tracking``, ``designated`` only: no ablations).
-The clicks are the report's (quay points at 45, 52, … s). About a minute per 60 s recording.
+cache ``DIR/small-boat-seed7-60s-sim…``) goes through the replay report itself
+(``evaluation.report.evaluate``) trimmed to its main fusion and the designated targets: the
+server's path for each of the report's clicks (quay points at 45, 52, … s), no ablations.
+About a minute per 60 s recording.
 """
 
 from __future__ import annotations
@@ -24,32 +24,25 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from estimator.pipeline import FusionOptions  # noqa: E402
-from evaluation.report import CLICK_END_MARGIN_S, ReportOptions, run_set  # noqa: E402
-from evaluation.runs import Collect  # noqa: E402
-from evaluation.tracking import DESIGNATED, evaluate_tracking  # noqa: E402
-from evaluation.truth import DEFAULT_CLICK_TIMES_S, default_clicks  # noqa: E402
+from evaluation.report import MAIN, ReportOptions, evaluate  # noqa: E402
+from evaluation.tracking import DESIGNATED  # noqa: E402
 from recordings.format import load  # noqa: E402
 
+# The replay report trimmed to the designated targets: its main fusion (needed for the
+# window), then its own tracking run and evaluation, without the ablations.
+OPTIONS = ReportOptions(methods=(MAIN,), subset_sizes=(), clock_drift=False,
+                        single_satellites=0, without_cpp=False, tracking=True,
+                        tracking_methods=(DESIGNATED,))
 
-def evaluate(path: Path) -> dict:
+
+def evaluate_recording(path: Path) -> dict:
     """One recording's designated-target figures (clicks as in ``replay --report``)."""
-    rec = load(path)
-    opt = ReportOptions()
-    rs = run_set(rec, opt, lambda _text: None)
-    full = FusionOptions(keep_after_s=opt.init_s,
-                         body_origin_height_m=rec.hull.body_origin_height_m, **opt.fusion)
-    times = [t for t in DEFAULT_CLICK_TIMES_S if t < rs.duration - CLICK_END_MARGIN_S]
-    clicks = [c for c in default_clicks(rec, times_s=times) if c.frame < len(rs.vo.outputs)]
-    if not clicks:
-        return {"recording": path.name, "clicks": 0}
-    first = min(c.frame for c in clicks)
-    run = rs.fuse("designated targets", full, Collect(structures_from=first, landmarks=True))
-    report = evaluate_tracking(rec, run, clicks, methods=(DESIGNATED,))
-    scores = report.methods.get(DESIGNATED)
+    report = evaluate(load(path), OPTIONS, lambda _text: None).report.tracking
+    scores = report.methods.get(DESIGNATED) if report is not None else None
     if scores is None or scores.distance_m is None:
-        return {"recording": path.name, "clicks": 0, "reason": report.reason}
-    return {"recording": path.name, "clicks": len(clicks),
+        return {"recording": path.name, "clicks": 0,
+                "reason": report.reason if report is not None else "no tracking report"}
+    return {"recording": path.name, "clicks": len(report.clicks),
             "frames": scores.distance_m.n,
             "within_tolerance": scores.distance_m.within_tolerance,
             "within_2_sigma": scores.distance_within_2_sigma,
@@ -67,7 +60,7 @@ def main() -> None:
     rows = []
     for path in tqdm(args.recordings, desc="recordings", unit="rec"):
         try:
-            rows.append(evaluate(path))
+            rows.append(evaluate_recording(path))
         except Exception as exc:  # noqa: BLE001 — one bad recording does not stop the rest
             rows.append({"recording": path.name, "error": f"{type(exc).__name__}: {exc}"})
     print(f"{'recording':<40} {'tol':>5} {'2σ':>5} {'median':>7}  per-click median error (m)")

@@ -250,19 +250,7 @@ class TargetTracker:
         predicted = self.uv + self._mean_flow(self._prev_gray, gray, self.uv,
                                               p.flow_search_features)
         self._prev_gray = gray
-        size = np.array(gray.shape[::-1], float)
-        empty = np.zeros((0, 2))
-        match = _match(gray, self.template, predicted, p.flow_search_px)
-        if match is None or match[1] < p.lost_score or not self._inside(match[0], size):
-            return self._declare_lost(predicted, empty, np.zeros(2), size,
-                                      -1.0 if match is None else match[1],
-                                      "no match near where the image flow puts the point")
-        q, score = match
-        q = self._anchor(gray, q)
-        self._adapt(gray, q, score)
-        self.uv = q.copy()
-        return TrackResult(uv=q.copy(), score=score, status="tracking", particles=empty,
-                           uv_match=q.copy())
+        return self._update_template(gray, predicted, p.flow_search_px)
 
     def hold(self, image: np.ndarray, reason: str = "lost") -> TrackResult:
         """Mark the target lost on ``image`` (the next ``update`` follows from it)."""
@@ -355,19 +343,26 @@ class TargetTracker:
 
     # ---------------------------------------------------------------------- ablations
 
-    def _update_template(self, gray: np.ndarray) -> TrackResult:
-        """Adaptive template matching alone (seed 002 fig. 7 "適応パターンマッチングのみ")."""
+    def _update_template(self, gray: np.ndarray, centre: np.ndarray | None = None,
+                         radius: int | None = None) -> TrackResult:
+        """Adaptive template matching alone (seed 002 fig. 7 "適応パターンマッチングのみ"):
+        searched around the last estimate (or ``centre``) within the tracking or lost search
+        radius (or ``radius``)."""
         p = self.params
         size = np.array(gray.shape[::-1], float)
-        radius = p.search_px if self.status == "tracking" else p.lost_search_px
-        match = _match(gray, self.template, self.uv, radius + int(2 * p.sigma_d_px))
+        if centre is None:
+            centre = self.uv
+        if radius is None:
+            radius = (p.search_px if self.status == "tracking" else p.lost_search_px) \
+                + int(2 * p.sigma_d_px)
+        match = _match(gray, self.template, centre, radius)
         empty = np.zeros((0, 2))
         if match is None:
-            return self._declare_lost(self.uv, empty, np.zeros(2), size, -1.0, "no match window")
+            return self._declare_lost(centre, empty, np.zeros(2), size, -1.0, "no match window")
         q, score = match
         need = p.lost_score if self.status == "tracking" else p.reacquire_score
         if score < need or not self._inside(q, size):
-            return self._declare_lost(self.uv, empty, np.zeros(2), size, score,
+            return self._declare_lost(centre, empty, np.zeros(2), size, score,
                                       "correlation below the loss threshold")
         self.status = "tracking"
         q = self._anchor(gray, q)
