@@ -370,6 +370,42 @@ def _stats(fig: Figure, docs: dict[str, dict[str, Any]]) -> dict[str, Any]:
             "worst_task": worst_key}
 
 
+# Two processes may sum the same floats in another order (BLAS kernels, SIMD alignment): a
+# cluster's figures agree with a local run's to ~1e-10 relative, not bit for bit.
+SAME_FIGURE_REL_TOL = 1e-9
+
+
+def summary_differences(a: dict[str, Any], b: dict[str, Any],
+                        rel_tol: float = SAME_FIGURE_REL_TOL) -> list[str]:
+    """Where two campaign summaries disagree (numbers beyond ``rel_tol``, anything else at
+    all), one line each; the timing figures are left out (they differ from run to run), and of
+    the failed tasks only which ones."""
+    out: list[str] = []
+
+    def walk(x: Any, y: Any, where: str) -> None:
+        if isinstance(x, dict) and isinstance(y, dict):
+            for k in sorted(set(x) | set(y)):
+                if k not in x or k not in y:
+                    side = "the second" if k not in x else "the first"
+                    out.append(f"{where}.{k}: only in {side}")
+                else:
+                    walk(x[k], y[k], f"{where}.{k}" if where else k)
+        elif isinstance(x, float | int) and isinstance(y, float | int) \
+                and not isinstance(x, bool) and not isinstance(y, bool):
+            if not math.isclose(x, y, rel_tol=rel_tol, abs_tol=1e-15):
+                out.append(f"{where}: {x!r} != {y!r}")
+        elif x != y:
+            out.append(f"{where}: {x!r} != {y!r}")
+
+    def comparable(summary: dict[str, Any]) -> dict[str, Any]:
+        # A failed task's error may name a worker's paths: which tasks failed is what counts.
+        return {k: sorted(v) if k == "failed" else v for k, v in summary.items()
+                if k != "timing"}
+
+    walk(comparable(a), comparable(b), "")
+    return out
+
+
 def write_summary(out: Path, summary: dict[str, Any]) -> None:
     _write_json(out / "summary.json", summary)
     (out / "summary.md").write_text(format_summary(summary))

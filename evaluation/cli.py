@@ -14,7 +14,14 @@ from typing import Any
 from recordings import DEFAULT_RECORDING
 
 from .baseline import baseline_report, format_baseline_report, read_position
-from .campaign import format_summary, run_campaign, spec_from_args, write_plots
+from .campaign import (
+    SAME_FIGURE_REL_TOL,
+    format_summary,
+    run_campaign,
+    spec_from_args,
+    summary_differences,
+    write_plots,
+)
 from .compass import compass_report, format_compass_report
 from .records import to_json
 from .report import INIT_S, ReportOptions, replay_report
@@ -169,7 +176,29 @@ def add_campaign_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPar
     return p
 
 
+def cmd_campaign_compare(args: argparse.Namespace) -> int:
+    a, b = (json.loads((Path(d) / "summary.json").read_text()) for d in (args.first, args.second))
+    diffs = summary_differences(a, b)
+    for line in diffs:
+        print(line)
+    print(f"{len(diffs)} difference(s) beyond {SAME_FIGURE_REL_TOL:g} relative between "
+          f"{args.first} ({a['succeeded']} of {a['tasks']} tasks) and {args.second} "
+          f"({b['succeeded']} of {b['tasks']} tasks)")
+    return 0 if not diffs else 1
+
+
+def add_campaign_compare_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``berthing-aid campaign-compare``."""
+    p = sub.add_parser("campaign-compare", help="whether two campaigns' summaries agree (a "
+                                                "local run and a cluster's, say)")
+    p.add_argument("first", help="a campaign's --out directory")
+    p.add_argument("second", help="another campaign's --out directory")
+    p.set_defaults(func=cmd_campaign_compare)
+    return p
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:
+    add_campaign_compare_parser(sub)
     add_baseline_parser(sub)
     add_campaign_parser(sub)
     add_compass_parser(sub)
