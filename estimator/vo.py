@@ -32,6 +32,12 @@ the frame at which the VO initialised, both keyframes) has length 1.
 Image points are handled as undistorted normalised coordinates ``xy`` (``x/z, y/z`` in C); pixel
 thresholds are converted with the mean focal length.
 
+A camera wider than ``VoParams.max_working_width`` (the thesis' 1920×1200) is tracked on its
+image averaged down by 2, 4, … until it fits: the VO is that of a smaller camera of the same
+field of view (``working_camera``), its pixel thresholds those of the working image; only its
+outputs' pixels are full-size. Tracking at 960×600 already beats the thesis' figures, and each
+halving divides the per-frame image work by four.
+
 When tracking is lost (too few PnP inliers) the map is dropped and a new world is initialised;
 ``segment`` then changes so the fusion can reset its VO states (attitude drift, scale, drift of
 ``d``) instead of reading a jump of the trajectory.
@@ -39,9 +45,11 @@ When tracking is lost (too few PnP inliers) the map is dropped and a new world i
 
 from __future__ import annotations
 
+import os
 import time as _time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -53,11 +61,19 @@ from estimator.records import CameraCalibration, mean_focal
 
 STAGES = ("detect", "track", "pose", "triangulate", "ba")
 
+# The template alignment is the front end's largest cost; OpenCV's remap and numpy's array
+# arithmetic release the GIL, so chunks of tracks are aligned on all cores. The chunk size is
+# fixed (not the core count), so a recording gives the same VO on any machine.
+ALIGN_CHUNK = 128
+_ALIGN_POOL = ThreadPoolExecutor(max_workers=max(1, min(4, os.cpu_count() or 1)),
+                                 thread_name_prefix="vo-align")
+
 
 @dataclass
 class VoParams:
-    """Tuning of the VO block. Pixel values refer to the full-size undistorted image."""
+    """Tuning of the VO block. Pixel values refer to the working image (``working_camera``)."""
 
+    max_working_width: int = 1280  # wider images are halved until they fit (px)
     n_features: int = 500  # live tracks wanted; ORB tops them up at keyframes
     orb_fast_threshold: int = 10  # FAST threshold of the ORB detector (grey levels)
     orb_levels: int = 3  # ORB pyramid levels (few: corners are only seeds for LK)
@@ -384,6 +400,41 @@ def _same_pose_direction(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, 
                 np.degrees(np.arccos(np.clip(cos, -1, 1))) < 10 * p.init_agreement_deg)
 
 
+def working_level(width: int, max_width: int) -> int:
+    """How many halvings bring an image ``width`` pixels wide to at most ``max_width``."""
+    level = 0
+    while width > max_width and width % 2 == 0:
+        width //= 2
+        level += 1
+    return level
+
+
+def working_camera(camera: CameraCalibration, level: int) -> CameraCalibration:
+    """The camera whose image is ``camera``'s averaged over 2^level × 2^level pixel blocks:
+    working pixel i covers full pixels s·i … s·i + s − 1, its centre at s·i + (s − 1)/2, so
+    the focal length is divided by s = 2^level and the principal point moves by (s − 1)/2
+    first. The distortion acts on normalised coordinates and stays."""
+    if level == 0:
+        return camera
+    s = 2 ** level
+    K = np.array(camera.K, float)
+    K[:2, :2] /= s
+    K[:2, 2] = (K[:2, 2] - (s - 1) / 2) / s
+    return replace(camera, width=camera.width // s, height=camera.height // s, K=K)
+
+
+def to_full_pixels(uv: np.ndarray, level: int) -> np.ndarray:
+    """Working-image pixels (``working_camera``) to the full image's."""
+    s = 2 ** level
+    return s * np.asarray(uv, float) + (s - 1) / 2
+
+
+def to_working_pixels(uv: np.ndarray, level: int) -> np.ndarray:
+    """Full-image pixels to the working image's (``working_camera``)."""
+    s = 2 ** level
+    return (np.asarray(uv, float) - (s - 1) / 2) / s
+
+
 # ------------------------------------------------------------------- template alignment
 
 
@@ -408,6 +459,21 @@ def normalised(patches: np.ndarray) -> np.ndarray:
     mean = patches.mean(axis=(1, 2), keepdims=True)
     std = np.maximum(patches.std(axis=(1, 2), keepdims=True), 1.0)
     return ((patches - mean) / std).astype(np.float32)
+
+
+def align_affine_chunked(image_and_gradients: np.ndarray, templates: np.ndarray,
+                         centres: np.ndarray, warps: np.ndarray, iterations: int
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``align_affine`` over chunks of ``ALIGN_CHUNK`` tracks run in parallel (each track's
+    alignment is its own; the chunks only change float rounding, the same on every run)."""
+    starts = range(0, len(templates), ALIGN_CHUNK)
+    if len(starts) <= 1:
+        return align_affine(image_and_gradients, templates, centres, warps, iterations)
+    parts = [_ALIGN_POOL.submit(align_affine, image_and_gradients, templates[k:k + ALIGN_CHUNK],
+                                centres[k:k + ALIGN_CHUNK], warps[k:k + ALIGN_CHUNK], iterations)
+             for k in starts]
+    done = [f.result() for f in parts]
+    return tuple(np.concatenate([d[i] for d in done]) for i in range(3))  # type: ignore
 
 
 def align_affine(image_and_gradients: np.ndarray, templates: np.ndarray, centres: np.ndarray,
@@ -557,6 +623,8 @@ class VisualOdometry:
         self.camera = camera
         self.params = params or VoParams()
         p = self.params
+        self.level = working_level(int(camera.width), p.max_working_width)
+        camera = working_camera(camera, self.level)
         self._K = np.asarray(camera.K, float)
         self._dist = np.asarray(camera.distortion, float).ravel()
         self._focal = camera.focal_px
@@ -579,6 +647,8 @@ class VisualOdometry:
         """Track the frame taken at ``time`` and return the VO output for it."""
         t_start = _time.perf_counter()
         gray = image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
+        if self.level:
+            gray = cv2.resize(gray, self._size, interpolation=cv2.INTER_AREA)  # block means
         blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), self.params.template_blur_px
                                    ) if self.params.template_check else None
         if len(self._tracks) and self._prev_gray is not None:
@@ -601,7 +671,7 @@ class VisualOdometry:
         wants some (reference frame, keyframes); known ids missing from the list are lost."""
         t_start = _time.perf_counter()
         track_ids = np.asarray(track_ids, np.int64)
-        uv = np.asarray(uv, np.float32).reshape(-1, 2)
+        uv = to_working_pixels(np.reshape(uv, (-1, 2)), self.level).astype(np.float32)
         row = {int(i): k for k, i in enumerate(self._tracks.id)}
         known = np.array([int(i) in row for i in track_ids], bool)
         self._set_tracks(np.array([row[int(i)] for i in track_ids[known]], np.int64), uv[known])
@@ -613,6 +683,11 @@ class VisualOdometry:
         out = self._step(time, detect)
         self._elapsed["total"] += _time.perf_counter() - t_start
         return out
+
+    @property
+    def working_size(self) -> tuple[int, int]:
+        """(width, height) of the image the VO tracks on (``working_camera``)."""
+        return self._size
 
     def stats(self) -> dict:
         """Average milliseconds per frame of each stage (and of the whole ``process``), the
@@ -658,10 +733,11 @@ class VisualOdometry:
         if len(rows) == 0:
             return uv, ok
         uv, ok = uv.copy(), ok.copy()
-        stack = np.dstack([image, cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1 / 32),
+        stack = cv2.merge([image, cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1 / 32),
                            cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1 / 32)])
-        centre, warp, ncc = align_affine(stack, tr.template[rows], uv[rows].astype(float),
-                                         tr.warp[rows], p.template_iterations)
+        centre, warp, ncc = align_affine_chunked(stack, tr.template[rows],
+                                                 uv[rows].astype(float), tr.warp[rows],
+                                                 p.template_iterations)
         stretch = np.linalg.svd(warp, compute_uv=False)
         good = ((ncc >= p.template_min_ncc)
                 & (np.linalg.norm(centre - uv[rows], axis=1) <= p.template_max_shift_px)
@@ -759,7 +835,8 @@ class VisualOdometry:
             camera_position_world=position, n_tracked=len(self._tracks), n_inliers=int(n_inliers),
             is_keyframe=is_keyframe, points_world=self._map.xyz.copy(),
             point_ids=self._map.ids.copy(),
-            observations=(self._tracks.id[rows].copy(), self._tracks.uv[rows].astype(float)),
+            observations=(self._tracks.id[rows].copy(),
+                          to_full_pixels(self._tracks.uv[rows], self.level)),
             world_time=self._keyframes[0].time if self._keyframes else None)
 
     def _step(self, time: float, detect: Callable) -> VoOutput:

@@ -17,9 +17,12 @@ from estimator.vo import (
     VisualOdometry,
     bundle_adjust,
     relative_pose,
+    to_full_pixels,
     triangulate,
     triangulation_quality,
     umeyama_alignment,
+    working_camera,
+    working_level,
 )
 
 K = np.array([[680.0, 0.0, 480.0], [0.0, 680.0, 300.0], [0.0, 0.0, 1.0]])
@@ -261,6 +264,45 @@ def test_tracks_gap_starts_new_segment():
     for seg in (0, 1):
         share, _ = trajectory_residual(outs, truth, seg)
         assert share < 0.02
+
+
+def test_a_full_resolution_camera_is_tracked_at_half_size():
+    """The thesis' 1920x1200 camera: the VO works on the 960x600 block means (its pixel
+    thresholds those of the smaller image) and answers in full-size pixels."""
+    full = CameraCalibration(1920, 1200, np.array([[1360.0, 0, 960.5], [0, 1360.0, 600.5],
+                                                   [0, 0, 1]]), DIST, CAMERA.C_camera_to_body,
+                             CAMERA.lever_arm_body)
+    assert working_level(1920, 1280) == 1 and working_level(960, 1280) == 0
+    half = working_camera(full, 1)
+    assert (half.width, half.height) == (960, 600)
+    # A point projects where the block mean of its full-size pixel puts it.
+    X = marina_points(np.random.default_rng(9), 50)
+    C, position = camera_path(1)[0]
+    args = (X, cv2.Rodrigues(C)[0], -C @ position)
+    uv_full = cv2.projectPoints(*args, full.K, DIST)[0].reshape(-1, 2)
+    uv_half = cv2.projectPoints(*args, half.K, DIST)[0].reshape(-1, 2)
+    assert np.abs(to_full_pixels(uv_half, 1) - uv_full).max() < 1e-9
+
+    vo = VisualOdometry(full)
+    assert vo.level == 1 and vo.working_size == (960, 600)
+    rng = np.random.default_rng(5)
+    X = marina_points(rng)
+    outs, truth = [], []
+    for k, (C, position) in enumerate(camera_path(60)):
+        depth = (X - position) @ C[2]
+        uv = cv2.projectPoints(X, cv2.Rodrigues(C)[0], -C @ position, full.K, DIST
+                               )[0].reshape(-1, 2) + rng.normal(0.0, 0.4, (len(X), 2))
+        seen = np.flatnonzero((depth > 1) & (uv[:, 0] > 4) & (uv[:, 0] < 1915)
+                              & (uv[:, 1] > 4) & (uv[:, 1] < 1195))
+        outs.append(vo.process_tracks(0.1 * k, seen, uv[seen]))
+        truth.append((C, position))
+        ids, obs = outs[-1].observations
+        row = {int(i): j for j, i in enumerate(seen)}
+        assert np.abs(obs - uv[seen][[row[int(i)] for i in ids]]).max(initial=0.0) < 1e-3
+    first = next(i for i, o in enumerate(outs) if o.status == "tracking")
+    assert first < 25 and all(o.status == "tracking" for o in outs[first:first + 20])
+    share, _ = trajectory_residual(outs[first:first + 20], truth[first:first + 20])
+    assert share < 0.01
 
 
 # ------------------------------------------------------------------ rendered small-boat run
