@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import queue
+import threading
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -257,9 +259,10 @@ class Recording:
 
     def _iter_frames(self, cap: cv2.VideoCapture, start: int,
                      n: int) -> Iterator[tuple[int, float, np.ndarray]]:
+        reads = _read_ahead(cap, n - start)
         try:
             for i in range(start, n):
-                ok, image = cap.read()
+                ok, image = next(reads)
                 if not ok:
                     warnings.warn(
                         f"{self.video_path()}: the video ends at frame {i} but "
@@ -268,6 +271,7 @@ class Recording:
                     return
                 yield i, float(self.frame_times[i]), image
         finally:
+            reads.close()  # the reading thread stops before the video is released
             cap.release()
 
     def read_frame(self, index: int) -> np.ndarray:
@@ -287,6 +291,50 @@ class Recording:
 
 
 RAW_MJPEG_SUFFIXES = (".mjpeg", ".mjpg")  # concatenated JPEGs: what a live session writes
+
+
+READ_AHEAD_FRAMES = 3
+
+
+def _read_ahead(cap: cv2.VideoCapture, count: int) -> Iterator[tuple[bool, np.ndarray | None]]:
+    """``cap.read()`` results, up to ``count``, decoded by a thread up to
+    ``READ_AHEAD_FRAMES`` ahead: the decoder (which releases the GIL) works on another core
+    while the caller processes the last frame. The frames and their order are those of
+    ``cap.read()``; an error in the thread is raised here."""
+    slots: queue.Queue = queue.Queue(maxsize=READ_AHEAD_FRAMES)
+    stop = threading.Event()
+
+    def offer(item: tuple) -> None:
+        while not stop.is_set():  # the reader may have stopped taking
+            try:
+                slots.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def read() -> None:
+        try:
+            for _ in range(count):
+                ok, image = cap.read()
+                offer((ok, image, None))
+                if not ok or stop.is_set():
+                    return
+        except BaseException as exc:  # handed to the reader, never lost with the thread
+            offer((False, None, exc))
+
+    thread = threading.Thread(target=read, name="video-read-ahead", daemon=True)
+    thread.start()
+    try:
+        for _ in range(count):
+            ok, image, error = slots.get()
+            if error is not None:
+                raise error
+            yield ok, image
+            if not ok:
+                return
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _skip_to(cap: cv2.VideoCapture, path: Path, index: int) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import threading
 import warnings
 from datetime import datetime
 from pathlib import Path
@@ -253,6 +254,36 @@ def test_video_frames_sequential_seek_and_random(loaded: fmt.Recording) -> None:
         loaded.read_frame(N_FRAMES)
     info = loaded.video_info
     assert (info.width, info.height, info.frame_count, info.fps) == (W, H, N_FRAMES, 10.0)
+
+
+def test_frames_read_ahead_in_order_stop_cleanly_and_raise_decoder_errors(
+        loaded: fmt.Recording) -> None:
+    """The video is decoded by a thread ahead of the reader: same frames in the same order,
+    no thread left behind when the reader stops early, a decoder error raised to the reader."""
+    def readers() -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if t.name == "video-read-ahead"]
+
+    frames = loaded.frames()
+    first = [next(frames) for _ in range(3)]
+    assert [i for i, _, _ in first] == [0, 1, 2] and len(readers()) == 1
+    frames.close()
+    assert readers() == []
+
+    class Broken:
+        def __init__(self) -> None:
+            self.calls = 0
+
+        def read(self) -> tuple[bool, np.ndarray]:
+            self.calls += 1
+            if self.calls == 3:
+                raise RuntimeError("decoder fell over")
+            return True, np.full((2, 2, 3), self.calls, np.uint8)
+
+    reads = fmt._read_ahead(Broken(), 10)
+    assert [int(image[0, 0, 0]) for _, image in (next(reads), next(reads))] == [1, 2]
+    with pytest.raises(RuntimeError, match="decoder fell over"):
+        next(reads)
+    assert readers() == []
 
 
 def test_load_accepts_manifest_path_and_skips_gnss(pristine) -> None:
