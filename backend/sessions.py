@@ -47,9 +47,21 @@ from .targets import Target, TargetBook
 log = logging.getLogger(__name__)
 
 JPEG_QUALITY = 80
+# The stream's picture is halved until it is at most this wide: a bridge screen shows the video
+# in part of its width, the browser scales the picture to the camera's size (header width and
+# height, in which the overlay is drawn), and a 1920×1200 JPEG costs four times a 960×600 one.
+STREAM_MAX_WIDTH = 1280
 FRAME_BUFFER = 30  # recent frames kept (3 s): a click on a frame just shown, catch-up
 STRUCTURE_EVERY = 10  # frames between structure snapshots while not shown (a seek)
 
+
+
+def stream_picture(image: np.ndarray) -> np.ndarray:
+    """The frame as streamed: halved (2×2 block means) until at most ``STREAM_MAX_WIDTH``."""
+    while image.shape[1] > STREAM_MAX_WIDTH:
+        image = cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2),
+                           interpolation=cv2.INTER_AREA)
+    return image
 
 class Subscriber(Protocol):
     """A watching client (see ``stream.LatestSlot``); ``offer`` is called from any thread."""
@@ -263,7 +275,8 @@ class Session:
     def _frame_message(self, result: FrameResult, state: Any | None) -> tuple[bytes, bytes]:
         """Header JSON (without its closing brace: the sender appends its send time) and the
         JPEG of one frame."""
-        ok, jpeg = cv2.imencode(".jpg", result.image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        ok, jpeg = cv2.imencode(".jpg", stream_picture(result.image),
+                                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         if not ok:
             raise RuntimeError(f"JPEG encoding of frame {result.index} failed")
         with self.lock:

@@ -37,6 +37,7 @@ from backend_helpers import wait_status as _wait_status
 
 from backend.app import Settings
 from backend.models import StreamFrameHeader
+from backend.sessions import stream_picture
 from estimator.frames import euler_to_dcm
 from recordings.format import Recording, load
 
@@ -120,6 +121,19 @@ def test_recordings_listing_and_summary(ref_live: Live):
         assert info["video"]["frame_times"] == 121 and info["reference"]["present"]
         assert "path" not in info  # the server's file layout stays private
         assert client.get("/").status_code == 200  # the page, or a JSON pointer to the API
+
+
+def test_a_full_resolution_picture_is_streamed_at_half_size():
+    """The thesis' 1920x1200 frame goes out as its 960x600 block means (the page scales it to
+    the header's camera size); the bundled 960x600 goes out as it is."""
+    rng = np.random.default_rng(1)
+    full = rng.integers(0, 256, (1200, 1920, 3), dtype=np.uint8)
+    small = stream_picture(full)
+    assert small.shape == (600, 960, 3)
+    blocks = full.reshape(600, 2, 960, 2, 3).astype(float).mean(axis=(1, 3))
+    assert np.abs(small - blocks).max() <= 1.0
+    same = full[:600, :960]
+    assert stream_picture(same) is same
 
 
 def test_stream_overlay_matches_the_pose_of_its_frame(replayed: dict, rec: Recording):
