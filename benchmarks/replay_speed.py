@@ -85,6 +85,10 @@ def replay_speed(path: Path, seconds: float | None = None) -> dict:
         "realtime_factor_without_decoding": span / compute if compute > 0 else None,
         "ms_per_frame": {k: 1e3 * v / n for k, v in spent.items()},
         "engine_ms_per_call": fusion.timing(),
+        # the VO's own stages, ms per frame (ba_ms_per_call: one local bundle adjustment)
+        "vo_stages": None if fusion.vo is None else fusion.vo.stats(),
+        "vo_working_size": None if fusion.vo is None else
+        "{}x{} (level {})".format(*fusion.vo.working_size, fusion.vo.level),
         "process_frame_ms": {"p50": float(np.percentile(frame_ms, 50)),
                              "p95": float(np.percentile(frame_ms, 95)),
                              "max": float(np.max(frame_ms))} if frame_ms else None,
@@ -106,6 +110,12 @@ def format_speed(r: dict) -> str:
     lines.append(f"  {'total':<14} {sum(r['ms_per_frame'].values()):8.2f}   (10 fps live: 100)")
     lines.append("engine's Fusion.timing(), ms per call:")
     lines += [f"  {k:<14} {v:8.2f}" for k, v in r["engine_ms_per_call"].items()]
+    vo = r.get("vo_stages")
+    if vo:
+        lines.append(f"the VO's stages on its {r['vo_working_size']} working image, ms per frame "
+                     f"({vo['keyframes']} keyframes, {vo['ba_calls']} local BAs of "
+                     f"{vo['ba_ms_per_call']:.1f} ms):")
+        lines += [f"  {k[:-3]:<14} {vo[k]:8.2f}" for k in vo if k.endswith("_ms")]
     p = r["process_frame_ms"]
     if p:
         lines.append(f"process_frame latency: p50 {p['p50']:.1f} ms, p95 {p['p95']:.1f} ms, "
