@@ -45,10 +45,8 @@ When tracking is lost (too few PnP inliers) the map is dropped and a new world i
 
 from __future__ import annotations
 
-import os
 import time as _time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -60,13 +58,6 @@ from estimator.frames import skew
 from estimator.records import CameraCalibration, mean_focal
 
 STAGES = ("detect", "track", "pose", "triangulate", "ba")
-
-# The template alignment is the front end's largest cost; OpenCV's remap and numpy's array
-# arithmetic release the GIL, so chunks of tracks are aligned on all cores. The chunk size is
-# fixed (not the core count), so a recording gives the same VO on any machine.
-ALIGN_CHUNK = 128
-_ALIGN_POOL = ThreadPoolExecutor(max_workers=max(1, min(4, os.cpu_count() or 1)),
-                                 thread_name_prefix="vo-align")
 
 
 @dataclass
@@ -461,21 +452,6 @@ def normalised(patches: np.ndarray) -> np.ndarray:
     return ((patches - mean) / std).astype(np.float32)
 
 
-def align_affine_chunked(image_and_gradients: np.ndarray, templates: np.ndarray,
-                         centres: np.ndarray, warps: np.ndarray, iterations: int
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``align_affine`` over chunks of ``ALIGN_CHUNK`` tracks run in parallel (each track's
-    alignment is its own; the chunks only change float rounding, the same on every run)."""
-    starts = range(0, len(templates), ALIGN_CHUNK)
-    if len(starts) <= 1:
-        return align_affine(image_and_gradients, templates, centres, warps, iterations)
-    parts = [_ALIGN_POOL.submit(align_affine, image_and_gradients, templates[k:k + ALIGN_CHUNK],
-                                centres[k:k + ALIGN_CHUNK], warps[k:k + ALIGN_CHUNK], iterations)
-             for k in starts]
-    done = [f.result() for f in parts]
-    return tuple(np.concatenate([d[i] for d in done]) for i in range(3))  # type: ignore
-
-
 def align_affine(image_and_gradients: np.ndarray, templates: np.ndarray, centres: np.ndarray,
                  warps: np.ndarray, iterations: int
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -735,9 +711,8 @@ class VisualOdometry:
         uv, ok = uv.copy(), ok.copy()
         stack = cv2.merge([image, cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1 / 32),
                            cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1 / 32)])
-        centre, warp, ncc = align_affine_chunked(stack, tr.template[rows],
-                                                 uv[rows].astype(float), tr.warp[rows],
-                                                 p.template_iterations)
+        centre, warp, ncc = align_affine(stack, tr.template[rows], uv[rows].astype(float),
+                                         tr.warp[rows], p.template_iterations)
         stretch = np.linalg.svd(warp, compute_uv=False)
         good = ((ncc >= p.template_min_ncc)
                 & (np.linalg.norm(centre - uv[rows], axis=1) <= p.template_max_shift_px)
