@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -206,6 +207,7 @@ class Scout:
 
     def _run(self) -> None:
         messages: Iterator[SensorMessage] = iter(())
+        _lowest_priority()
         try:
             engine = self._make_engine()
             messages = sensor_messages(self.rec)
@@ -239,6 +241,17 @@ class Scout:
             close = getattr(messages, "close", None)
             if close is not None:
                 close()
+
+
+def _lowest_priority() -> None:
+    """The calling thread yields the processor to every other one (on Linux a thread has a
+    nice value of its own): the look-ahead engine takes only what the replay, the stream
+    and the server leave. Its wait while the replay is busy is not enough: at 1x the replay
+    keeps pace, and the scout then took the core the JPEG encoding and the overlay need."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    except (AttributeError, OSError):  # elsewhere the wait alone
+        pass
 
 
 class ScoutPool:

@@ -5,6 +5,8 @@ exactly like the original."""
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -13,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.replay import FrameResult, Replayer, ReplayState, snapshot
+from backend.replay import FrameResult, Replayer, ReplayState, Scout, snapshot
 from engine.driver import dispatch
 from engine.messages import FrameMessage, GnssMessage, ImuMessage, group_gnss, sensor_messages
 from recordings.format import Recording, load
@@ -203,6 +205,21 @@ def test_the_scout_runs_ahead_and_seeks_start_from_its_copies(rec: Recording):
     finally:
         replayer.stop()
     assert replayer.scout.checkpoint(float("inf")) is None  # the copies are released
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice: Linux")
+def test_the_scout_runs_at_the_lowest_priority(rec: Recording):
+    """At 1x the replay keeps pace and the scout runs, so it must leave the processor to
+    the replay, the stream and the server: its thread has nice 19, the others keep theirs."""
+    scout = Scout(rec, SumEngine)
+    scout.attach(object(), lambda: True)  # a busy replay: the scout waits, its thread alive
+    scout.start()
+    try:
+        tid = scout._thread.native_id
+        wait_for(lambda: os.getpriority(os.PRIO_PROCESS, tid) == 19, 5)
+        assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) < 19
+    finally:
+        scout.stop()
 
 
 def test_sessions_of_one_recording_share_a_scout_and_the_server_warms_it(sim_recording: Path):
