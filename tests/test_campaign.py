@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -81,8 +82,11 @@ def test_local_campaign_records_results_and_errors(local: tuple[Path, Path, dict
     assert "| methods.INS+VO+CPP.horizontal_std_m |" in md and "## Failed tasks" in md
 
 
-def test_a_second_run_skips_what_is_done(local: tuple[Path, Path, dict]) -> None:
-    cache, out, summary = local
+def test_a_second_run_skips_what_is_done(local: tuple[Path, Path, dict],
+                                         tmp_path: Path) -> None:
+    cache, first, summary = local
+    # in a copy: the first output stays as it was for the cluster test's comparison
+    out = shutil.copytree(first, tmp_path / "again")
     stamp = (out / "tasks" / "small-boat-seed5-12s-clean.json").stat().st_mtime
     tic = time.monotonic()
     again = run_campaign(CampaignSpec(**{**SPEC.__dict__, "faults": [None, "imu-gap:6:1"]}),
