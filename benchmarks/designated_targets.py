@@ -1,6 +1,8 @@
 """Designated-target distances over many recordings (issue 17): the share of tracked frames
 whose distance is within tolerance (max(0.1 m, 1 %)) and within 2σ, per recording and their
-worst and median, with each click's median error.
+worst and median, with each click's median error; and the image track's honesty: the share
+of in-view frames tracked and the frames said "tracking" while the target is more than 10 px
+away or out of the image (undetected losses).
 
     .venv/bin/python benchmarks/designated_targets.py RECORDING [RECORDING ...]
         [--json OUT.json]
@@ -47,6 +49,8 @@ def evaluate_recording(path: Path) -> dict:
             "within_tolerance": scores.distance_m.within_tolerance,
             "within_2_sigma": scores.distance_within_2_sigma,
             "median_m": scores.distance_m.median,
+            "tracked_fraction": scores.tracked_fraction,
+            "undetected_loss_frames": scores.undetected_loss_frames,
             "per_click_median_m": [
                 (c.label, c.per_method[DESIGNATED].distance_error_median_m)
                 for c in report.clicks if c.per_method]}
@@ -63,17 +67,19 @@ def main() -> None:
             rows.append(evaluate_recording(path))
         except Exception as exc:  # noqa: BLE001 — one bad recording does not stop the rest
             rows.append({"recording": path.name, "error": f"{type(exc).__name__}: {exc}"})
-    print(f"{'recording':<40} {'tol':>5} {'2σ':>5} {'median':>7}  per-click median error (m)")
+    print(f"{'recording':<40} {'tol':>5} {'2σ':>5} {'median':>7} {'trk':>5} {'undet':>5}  "
+          "per-click median error (m)")
     for r in rows:
         if "error" in r or not r.get("clicks"):
             print(f"{r['recording']:<40} {r.get('error') or r.get('reason') or 'no click'}")
             continue
         clicks = " ".join(f"{e:.2f}" for _label, e in r["per_click_median_m"] if e is not None)
         print(f"{r['recording']:<40} {r['within_tolerance']:>5.2f} {r['within_2_sigma']:>5.2f} "
-              f"{r['median_m']:>7.3f}  {clicks}")
+              f"{r['median_m']:>7.3f} {r['tracked_fraction'] or 0:>5.2f} "
+              f"{r['undetected_loss_frames']:>5d}  {clicks}")
     scored = [r for r in rows if r.get("clicks") and "error" not in r]
     summary = {}
-    for key in ("within_tolerance", "within_2_sigma"):
+    for key in ("within_tolerance", "within_2_sigma", "tracked_fraction"):
         have = [r for r in scored if r.get(key) is not None]
         if have:
             vals = np.array([r[key] for r in have], float)
@@ -82,6 +88,14 @@ def main() -> None:
                             "worst_recording": worst}
             print(f"{key}: worst {vals.min():.2f} ({worst}), median {np.median(vals):.2f} "
                   f"over {len(vals)} recordings")
+    if scored:
+        undetected = [r["undetected_loss_frames"] for r in scored]
+        worst = scored[int(np.argmax(undetected))]["recording"]
+        summary["undetected_loss_frames"] = {"total": int(sum(undetected)),
+                                             "worst": int(max(undetected)),
+                                             "worst_recording": worst}
+        print(f"undetected_loss_frames: {sum(undetected)} in all, worst {max(undetected)} "
+              f"({worst})")
     if args.json:
         args.json.write_text(json.dumps({"rows": rows, "summary": summary}, indent=1))
 
