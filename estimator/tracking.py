@@ -867,11 +867,13 @@ class DesignatedTarget:
         res = self.tracker.update(image)
         reason, reacquired = res.reason, False
         if (res.status == "tracking" and self.status == "lost" and pred is not None
-                and res.uv is not None and self._beyond_reach(res.uv, pred, view)):
-            # Lost, the image tracker finds its template again — farther from where the 3-D
-            # point projects (or with that point out of the image) than the point's own
-            # uncertainty allows: the look-alike it slid to, not the target. Only a find
-            # within reach of the 3-D point takes it back.
+                and not in_view and res.uv is not None
+                and self._beyond_reach(res.uv, pred, view)):
+            # Lost, its 3-D point out of the image, the image tracker finds its template
+            # again inside it, farther than the point's own uncertainty allows: the
+            # look-alike it slid to, not the target. (With the point in view a find away
+            # from it stays possible: it is the point that may be off, and the χ² gate of
+            # the views judges.)
             self.tracker.status = "lost"
             res = replace(res, uv=None, status="lost",
                           reason="found again away from its 3-D point")
