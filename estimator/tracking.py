@@ -63,7 +63,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -549,6 +549,9 @@ class TargetTracker:
 # ------------------------------------------------------------------ designated target
 
 
+REACH_CHI2 = 13.8  # χ²(2) at 99.9 %: a find farther from its 3-D point is not the target
+
+
 @dataclass
 class TargetState:
     """A designated target after one frame."""
@@ -826,15 +829,34 @@ class DesignatedTarget:
         u = (X - c) / max(d, 1e-9)
         return d, float(np.sqrt(max(u @ P @ u, 0.0)))
 
-    def project(self, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray
-                ) -> np.ndarray | None:
-        """The 3-D point in the image (distorted pixels), None behind the camera."""
-        xc = np.asarray(C_level_to_camera, float) @ (self.map.x[0]
-                                                     - np.asarray(camera_position_ned, float))
+    def project(self, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                point: np.ndarray | None = None) -> np.ndarray | None:
+        """The 3-D point (or ``point``) in the image (distorted pixels), None behind the
+        camera."""
+        X = self.map.x[0] if point is None else point
+        xc = np.asarray(C_level_to_camera, float) @ (X - np.asarray(camera_position_ned, float))
         if xc[2] <= 0.2:
             return None
         uv, _ = cv2.projectPoints(xc[None], np.zeros(3), np.zeros(3), self._K, self._dist)
         return uv.reshape(2)
+
+    def _beyond_reach(self, uv: np.ndarray, pred: np.ndarray, view: CameraView) -> bool:
+        """Whether an image find at ``uv`` is farther from the 3-D point's projection
+        ``pred`` than both the re-acquisition radius and the point's own uncertainty (its
+        covariance projected, with the tracker's pixel noise, at χ² 99.9 %) allow."""
+        d = np.asarray(uv, float) - pred
+        if np.linalg.norm(d) <= self.params.reacquire_radius_px:
+            return False
+        X, step = self.map.x[0], 0.01  # m: the projection's Jacobian by differences
+        J = np.empty((2, 3))
+        for i in range(3):
+            q = self.project(view.C_level_to_camera, view.position_ned,
+                             X + step * np.eye(3)[i])
+            if q is None:
+                return False  # at the camera: nothing to judge by
+            J[:, i] = (q - pred) / step
+        S = J @ self.covariance @ J.T + self.params.landmark.pixel_sigma_px ** 2 * np.eye(2)
+        return float(d @ np.linalg.solve(S, d)) > REACH_CHI2
 
     def update(self, image: np.ndarray, view: CameraView) -> TargetState:
         """One frame and the fused camera pose at its time."""
@@ -844,6 +866,17 @@ class DesignatedTarget:
         in_view = pred is not None and -0.5 <= pred[0] <= w - 0.5 and -0.5 <= pred[1] <= h - 0.5
         res = self.tracker.update(image)
         reason, reacquired = res.reason, False
+        if (res.status == "tracking" and self.status == "lost" and pred is not None
+                and not in_view and res.uv is not None
+                and self._beyond_reach(res.uv, pred, view)):
+            # Lost, its 3-D point out of the image, the image tracker finds its template
+            # again inside it, farther than the point's own uncertainty allows: the
+            # look-alike it slid to, not the target. (With the point in view a find away
+            # from it stays possible: it is the point that may be off, and the χ² gate of
+            # the views judges.)
+            self.tracker.status = "lost"
+            res = replace(res, uv=None, status="lost",
+                          reason="found again away from its 3-D point")
         if res.status != "tracking" and in_view:
             res = self.tracker.reacquire(image, pred, p.reacquire_radius_px)
             reacquired = res.status == "tracking"

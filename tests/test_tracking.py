@@ -251,6 +251,38 @@ def test_designated_target_locks_its_distance_and_reacquires(along_path):
     assert np.linalg.norm(back.uv - truth[5]) < 2.0
 
 
+def test_a_find_away_from_its_3d_point_does_not_take_the_target_back(panning):
+    """Once its point has left the image, a look-alike of the target where the image tracker
+    dead-reckons it (seed 18's fender: the tracker found the quay's dark band again, 90–350 px
+    from the point, and said "tracking" two frames in three) is not the target: it stays
+    lost, and says why."""
+    seq, point = panning
+    truth = seq.truth(point)
+    C0, p0 = seq.poses[0]
+    pose_cov = np.diag([1e-4] * 3 + [np.radians(0.02) ** 2] * 3)
+    tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], point, None,
+                           CameraView(math.nan, C0, p0, pose_cov), params=TargetParams(),
+                           seed=0)
+    u0, v0 = np.round(truth[0]).astype(int)
+    look_alike = seq.images[0][v0 - 20:v0 + 21, u0 - 20:u0 + 21]
+    w, h = seq.cam.width, seq.cam.height
+    pasted = 0
+    for k in range(1, N_FRAMES):
+        image = seq.images[k].copy()
+        out = not 0 <= truth[k, 0] <= w - 1
+        guess = tgt.tracker.uv
+        if out and guess is not None:
+            u, v = np.clip(np.round(guess).astype(int), 25, [w - 26, h - 26])
+            image[v - 20:v + 21, u - 20:u + 21] = look_alike  # where the tracker looks
+            pasted += 1
+        state = tgt.update(image, CameraView(T0 + 0.1 * k, *seq.poses[k], pose_cov))
+        if out:
+            assert state.status == "lost" and state.uv is None, (k, state.uv)
+        elif state.status == "tracking":
+            assert np.linalg.norm(state.uv - truth[k]) < 3.0
+    assert pasted >= 3
+
+
 def test_designated_target_reanchors_on_converged_structure(along_path):
     """A target whose 3-D point came 15 % too far along its ray takes its point again from
     the structure around the pixel it tracks — only once the points there have converged
