@@ -525,7 +525,7 @@ class LandmarkMap:
     def __init__(self, focal_px: float, params: LandmarkParams | None = None) -> None:
         self.focal = float(focal_px)
         self.params = params or LandmarkParams()
-        self._gate = float(chi2.ppf(self.params.gate_probability, 2))
+        self.gate = float(chi2.ppf(self.params.gate_probability, 2))  # χ² of a view, 2 dof
         self.ids = np.zeros(0, np.int64)  # row → id
         self.x = np.zeros((0, 3))
         self.P = np.zeros((0, 3, 3))
@@ -661,7 +661,7 @@ class LandmarkMap:
         C = np.asarray(C_level_to_camera, float)
         p = np.asarray(camera_position_ned, float)
         x, P_new, d2, front = self._filter(rows, z_meas, C, p, pose_cov)
-        accept = front & (d2 <= self._gate)
+        accept = front & (d2 <= self.gate)
         gated = front & ~accept
         a = rows[accept]
         self.x[a] = x[accept]

@@ -549,9 +549,6 @@ class TargetTracker:
 # ------------------------------------------------------------------ designated target
 
 
-REACH_CHI2 = 13.8  # χ²(2) at 99.9 %: a find farther from its 3-D point is not the target
-
-
 @dataclass
 class TargetState:
     """A designated target after one frame."""
@@ -843,7 +840,8 @@ class DesignatedTarget:
     def _beyond_reach(self, uv: np.ndarray, pred: np.ndarray, view: CameraView) -> bool:
         """Whether an image find at ``uv`` is farther from the 3-D point's projection
         ``pred`` than both the re-acquisition radius and the point's own uncertainty (its
-        covariance projected, with the tracker's pixel noise, at χ² 99.9 %) allow."""
+        covariance projected, with the tracker's pixel noise, at the landmark EKF's own χ²
+        gate of a view) allow."""
         d = np.asarray(uv, float) - pred
         if np.linalg.norm(d) <= self.params.reacquire_radius_px:
             return False
@@ -856,7 +854,7 @@ class DesignatedTarget:
                 return False  # at the camera: nothing to judge by
             J[:, i] = (q - pred) / step
         S = J @ self.covariance @ J.T + self.params.landmark.pixel_sigma_px ** 2 * np.eye(2)
-        return float(d @ np.linalg.solve(S, d)) > REACH_CHI2
+        return float(d @ np.linalg.solve(S, d)) > self.map.gate
 
     def update(self, image: np.ndarray, view: CameraView) -> TargetState:
         """One frame and the fused camera pose at its time."""
