@@ -8,7 +8,13 @@ the quay face between them (``fit_quay_face``): a vertical plane fitted through 
 σ. A pixel's depth along the water plane is ill-conditioned from a camera a metre above the
 water (a pixel is ~0.3 m at 15 m); the face's points are not. Only where there is no structure
 near the clicks does the line fall back to the click rays' intersections with the water plane
-(``method`` = ``water-plane``, with a note saying so).
+(``method`` = ``water-plane``, with a note saying so, and a σ from a slipped click and the
+camera's height over the water).
+
+A wrong plane is worse than none: the fit is refused (the water plane then) when the plane
+lies beyond where a click's ray meets the water, behind converged points right at a click,
+or where a click's ray meets it away from all its points (a boat's side between the clicks).
+``benchmarks/berth_clicks.py`` measures it over many recordings.
 """
 
 from __future__ import annotations
@@ -30,7 +36,9 @@ from .geometry import berth_metrics, heading_rotation
 from .models import MAX_PLAN_M
 
 MIN_LENGTH_M = 0.1  # the two points of a berth line at least this far apart
-CLICK_RADII = (0.05, 0.1)  # structure points "under" a click: these fractions of the image width
+# structure points "under" a click: these fractions of the image width (nearest first; the
+# widest only reaches a face whose points lie beside the click, as on a bare wall)
+CLICK_RADII = (0.05, 0.1, 0.2)
 HYPOTHESIS_GATE_M = 0.25  # a point supports a hypothetical face this near it
 REFIT_GATE_M = 0.5  # the chosen face is re-fitted to the points this near it
 EXTEND_M = 30.0  # ... and to those this far beyond the clicks along it
@@ -42,6 +50,18 @@ ABOVE_WATER_M = 0.1  # structure points at most this far above the water plane a
 MIN_INLIER_GATE_M = 0.15
 CORRELATED_FRACTION = 0.002  # σ of the line shared by all its points, per metre of range
 MIN_POINT_SIGMA_M = 0.02  # a structure point's σ taken as at least this in the fit
+# Where a click's ray meets the water bounds the clicked surface's range (it hides what lies
+# beyond), give or take a slipped click and the camera's height over the water (waves, squat).
+CLICK_SLIP_PX = 2.0
+CAMERA_HEIGHT_SIGMA_M = 0.1
+OCCLUSION_SIGMAS = 3.0
+# A face's points must lie on both sides of where each click's ray meets it, or reach to within
+# this of it (at least the minimum, else the fraction of that range): a plane that only
+# extrapolates to a click is not shown to be what the click is on (a boat's side, say, between
+# the clicks in front of the quay).
+END_REACH_M = 2.0
+MIN_BLOCKERS = 2  # converged points at a click in front of a plane that rule it out
+END_REACH_FRACTION = 0.15
 # A recording's own berth line is placed through the fused absolute position (standalone GNSS:
 # metre-level), not through what the camera sees.
 RECORDING_LINE_SIGMA_M = 2.0
@@ -142,7 +162,8 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     hypothesis stands when points of it lie under both clicks; of those standing, the clicked
     surface is the nearest (what a pixel shows is the first surface along its ray), and of the
     planes of that surface the best supported is fitted to all its points between the clicks
-    and up to ``EXTEND_M`` beyond them."""
+    and up to ``EXTEND_M`` beyond them. No plane may lie beyond where a click's ray meets the
+    water (``water_bounds``): that pixel would show the water, not it."""
     pts = np.asarray(structure.points, dtype=float).reshape(-1, 3)
     if len(pts) < MIN_FACE_POINTS:
         return None
@@ -161,12 +182,18 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     half = abs(float(_wrap(click_az[1] - click_az[0]))) / 2
     mid = float(_wrap(click_az[0] + _wrap(click_az[1] - click_az[0]) / 2))
     sector = usable & (np.abs(_wrap(azimuths - mid)) <= half + np.radians(SECTOR_MARGIN_DEG))
+    bound = water_bounds(projector, cam, rays, water_down_m)
+    with np.errstate(invalid="ignore"):  # the converged points right at each click
+        at = [usable & (np.hypot(uv[:, 0] - u, uv[:, 1] - v) <= CLICK_RADII[0] * projector.width)
+              for u, v in clicks]
+    blockers = np.flatnonzero(at[0] | at[1])
     chosen = None
     for radius in CLICK_RADII:  # the nearest points under the clicks first
         with np.errstate(invalid="ignore"):
             under = [usable & (np.hypot(uv[:, 0] - u, uv[:, 1] - v) <= radius * projector.width)
                      for u, v in clicks]
-        chosen = _front_face(pts, under, sector, rays, cam)
+        chosen = _front_face(pts, under, sector, rays, cam, bound,
+                             (pts[blockers, :2], sigma[blockers]))
         if chosen is not None:
             break
     if chosen is None:
@@ -189,6 +216,17 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     ends = [_ray_line(cam[:2], az, fit.centre, fit.direction) for az in click_az]
     if any(e is None for e in ends) or np.linalg.norm(ends[1] - ends[0]) < MIN_LENGTH_M:
         return None
+    normal = np.array([-fit.direction[1], fit.direction[0]])
+    if _in_front(pts[blockers, :2], sigma[blockers], fit.centre[None], normal[None], cam).any():
+        return None  # the re-fit swung behind what a click shows
+    along = (pts[members, :2] - fit.centre) @ fit.direction
+    for end, b in zip(ends, bound, strict=True):  # the re-fitted face still answers for both clicks
+        rng = float(np.linalg.norm(end - cam[:2]))
+        offset = along - float((end - fit.centre) @ fit.direction)
+        bracketed = offset.min() < 0 < offset.max()
+        if rng > b or not (bracketed or np.abs(offset).min()
+                           <= max(END_REACH_M, END_REACH_FRACTION * rng)):
+            return None
     # the points' errors are not independent (one VO scale, the poses they were triangulated
     # from): a σ proportional to the range stands for what they share
     shared = CORRELATED_FRACTION * float(np.linalg.norm(fit.centre - cam[:2]))
@@ -197,10 +235,86 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
                      sigma_deg=float(np.degrees(fit.sigma_rad)), support=fit.support)
 
 
+def water_range(projector: Projector, cam: np.ndarray, ray: np.ndarray,
+                water_down_m: float | None) -> tuple[np.ndarray, float, float] | None:
+    """Where a click's ray meets the water: the point, its plan range and that range's σ (a
+    click slipped by CLICK_SLIP_PX, the camera's height over the water off by
+    CAMERA_HEIGHT_SIGMA_M); None where the ray misses the water or the level is unknown."""
+    if water_down_m is None:
+        return None
+    hit = water_plane_point(cam, ray, water_down_m)
+    if hit is None:
+        return None
+    height = water_down_m - float(cam[2])
+    rng = float(np.linalg.norm(hit[:2] - cam[:2]))
+    focal = float(max(projector.K[0, 0], projector.K[1, 1]))
+    # range = height·cot(depression): its sensitivity to the depression and to the height
+    per_px = (height ** 2 + rng ** 2) / height / focal
+    return hit, rng, float(np.hypot(per_px * CLICK_SLIP_PX, rng / height * CAMERA_HEIGHT_SIGMA_M))
+
+
+def water_bounds(projector: Projector, cam: np.ndarray, rays: list[np.ndarray],
+                 water_down_m: float | None) -> np.ndarray:
+    """The farthest plan range each click's surface can lie at: where its ray meets the water,
+    plus OCCLUSION_SIGMAS of that range's σ (``water_range``); inf where there is none."""
+    bound = np.full(len(rays), np.inf)
+    for i, r in enumerate(rays):
+        hit = water_range(projector, cam, r, water_down_m)
+        if hit is not None:
+            bound[i] = hit[1] + OCCLUSION_SIGMAS * hit[2]
+    return bound
+
+
+def water_plane_line(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
+                     water_down_m: float | None) -> BerthLine:
+    """The line through where the click rays meet the water, with the σ of those ranges
+    carried across the line (at its middle and in its direction); Unprocessable when a ray
+    misses the water."""
+    cam = pose.position_ned
+    ends, across = [], []
+    for u, v in np.asarray(clicks_uv, dtype=float).reshape(2, 2):
+        ray = projector.pixel_ray(pose, u, v)
+        hit = water_range(projector, cam, ray, water_down_m)
+        if hit is None:
+            raise Unprocessable(
+                f"pixel ({u:g}, {v:g}): no converged port structure near the clicks and "
+                "its ray does not meet the water plane (above the horizon, or the water "
+                "level is unknown); click the quay where its points are shown, or type "
+                "the line in from the bow")
+        ends.append(hit[0][:2])
+        across.append((hit[0][:2] - cam[:2]) / hit[1] * hit[2])  # the range's σ, as a vector
+    line = np.array(ends)
+    length = float(np.linalg.norm(line[1] - line[0]))
+    if length < MIN_LENGTH_M:
+        raise Unprocessable(f"the clicks meet the water less than {MIN_LENGTH_M:g} m apart")
+    d = (line[1] - line[0]) / length
+    off = [abs(float(a @ np.array([-d[1], d[0]]))) for a in across]  # σ of each end across
+    return BerthLine(line, "image", method="water-plane",
+                     sigma_m=float(0.5 * np.hypot(*off)),
+                     sigma_deg=float(np.degrees(np.hypot(*off) / length)),
+                     note=WATER_PLANE_NOTE)
+
+
+def _in_front(points_ne: np.ndarray, sigma: np.ndarray, on_plane: np.ndarray,
+              normal: np.ndarray, cam: np.ndarray) -> np.ndarray:
+    """Per plane (a point on it, its normal: (H, 2) each): whether MIN_BLOCKERS of the points
+    lie between it and the camera, farther from it than FRONT_DEPTH_M and twice their σ (one
+    stray point is no surface)."""
+    if not len(points_ne):
+        return np.zeros(len(on_plane), dtype=bool)
+    towards = np.sign(np.einsum("hk,hk->h", cam[:2] - on_plane, normal))
+    depth = np.einsum("hnk,hk->hn", points_ne[None] - on_plane[:, None], normal) * towards[:, None]
+    return (depth > FRONT_DEPTH_M + 2.0 * sigma[None]).sum(axis=1) >= MIN_BLOCKERS
+
+
 def _front_face(pts: np.ndarray, under: list[np.ndarray], sector: np.ndarray,
-                rays: list[np.ndarray], cam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+                rays: list[np.ndarray], cam: np.ndarray, bound: np.ndarray,
+                blockers: tuple[np.ndarray, np.ndarray]
+                ) -> tuple[np.ndarray, np.ndarray] | None:
     """(point, direction) of the nearest well-supported vertical plane through a point under
-    each click (``fit_quay_face``), None when there is none."""
+    each click (``fit_quay_face``), in front of the water each click shows (``bound``) and of
+    the converged points right at the clicks (``blockers``: plan points, σ), None when there is
+    none."""
     if any(m.sum() < 1 for m in under):
         return None
     ia, ib = np.flatnonzero(under[0]), np.flatnonzero(under[1])
@@ -224,9 +338,21 @@ def _front_face(pts: np.ndarray, under: list[np.ndarray], sector: np.ndarray,
     for r in rays:
         with np.errstate(divide="ignore", invalid="ignore"):
             ranges.append(np.einsum("hk,hk->h", pa - cam[:2], normal) / (normal @ r[:2])
-                          / max(float(np.linalg.norm(r[:2])), 1e-9))
+                          * float(np.linalg.norm(r[:2])))
     reach = np.maximum(ranges[0], ranges[1])
     standing &= np.isfinite(reach) & (ranges[0] > 0) & (ranges[1] > 0)
+    standing &= (ranges[0] <= bound[0]) & (ranges[1] <= bound[1])
+    standing &= ~_in_front(*blockers, pa, normal, cam)
+    along = np.einsum("hnk,hk->hn", pts[cand, :2][None] - pa[:, None], d)
+    # the plane's points reach where each click meets it
+    for r, rng in zip(rays, ranges, strict=True):
+        plan = r[:2] / max(float(np.linalg.norm(r[:2])), 1e-9)
+        with np.errstate(invalid="ignore"):
+            end = np.einsum("hk,hk->h", cam[:2] + rng[:, None] * plan - pa, d)
+            offset = np.where(inlier, along - end[:, None], np.nan)
+            gap = np.nanmin(np.abs(np.where(inlier, offset, np.inf)), axis=1)
+            bracketed = (np.nanmin(offset, axis=1) < 0) & (np.nanmax(offset, axis=1) > 0)
+            standing &= bracketed | (gap <= np.maximum(END_REACH_M, END_REACH_FRACTION * rng))
     if not standing.any():
         return None
     nearest = float(reach[standing].min())
@@ -341,19 +467,7 @@ class Berth:
         fitted = fit_quay_face(p, pose, clicks, structure, self.water_down_m)
         if fitted is not None:
             return self._set(fitted)
-        ends = []
-        for u, v in clicks:
-            hit = None if self.water_down_m is None else water_plane_point(
-                pose.position_ned, p.pixel_ray(pose, u, v), self.water_down_m)
-            if hit is None:
-                raise Unprocessable(
-                    f"pixel ({u:g}, {v:g}): no converged port structure near the clicks and "
-                    "its ray does not meet the water plane (above the horizon, or the water "
-                    "level is unknown); click the quay where its points are shown, or type "
-                    "the line in from the bow")
-            ends.append(hit[:2])
-        return self._set(BerthLine(np.array(ends), "image", method="water-plane",
-                                   note=WATER_PLANE_NOTE))
+        return self._set(water_plane_line(p, pose, clicks, self.water_down_m))
 
     def set_from_bow(self, state: Any, distance_m: float, bearing_deg: float) -> BerthLine:
         line = line_from_bow(state, self.rec.hull.outline_body, distance_m, bearing_deg)

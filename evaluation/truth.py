@@ -168,3 +168,42 @@ def scene_depth(scene: Any, truth: Truth, k: int, t_rel: float, camera: CameraCa
     _img, depth = scene.render(truth.C_level_to_camera[k], truth.position[k], t_rel, camera,
                                np.random.default_rng(0), return_depth=True)
     return depth
+
+
+def quay_foot_clicks(rec: Recording, gpst: float, fractions: Sequence[float] = (0.2, 0.8),
+                     margin_px: float = 40.0) -> tuple[np.ndarray, float] | None:
+    """Pixels an officer would click on the quay's water line (the recording's berth line,
+    hull.json, on the water) seen from the true camera at ``gpst``: at ``fractions`` of the
+    visible stretch of it, and the true bow distance to it. Only the foot not hidden (by a
+    moored boat, for a simulated recording) counts as visible; None when under 20 of its
+    points (every 0.25 m) are."""
+    from types import SimpleNamespace
+
+    from backend.geometry import berth_metrics
+
+    if rec.reference is None or rec.hull.berth_line_ned is None:
+        return None
+    line = np.asarray(rec.hull.berth_line_ned, float).reshape(2, 2)
+    s = np.linspace(0.0, 1.0, max(int(np.linalg.norm(line[1] - line[0]) / 0.25), 2))
+    foot = np.column_stack([line[0] + s[:, None] * (line[1] - line[0]), np.zeros_like(s)])
+    truth = true_cameras(rec, np.array([gpst]), None)
+    cam = rec.calibration.camera
+    uv, z = project(cam, truth.C_level_to_camera[0], truth.position[0], foot)
+    ok = (np.isfinite(uv).all(axis=1) & (uv[:, 0] > margin_px)
+          & (uv[:, 0] < cam.width - 1 - margin_px) & (uv[:, 1] > 0) & (uv[:, 1] < cam.height - 1))
+    scene = rebuild_scene(rec)
+    if scene is not None and ok.any():
+        _img, depth = scene.render(truth.C_level_to_camera[0], truth.position[0],
+                                   gpst - float(rec.manifest.start_gpst), cam,
+                                   np.random.default_rng(0), return_depth=True)
+        for j in np.flatnonzero(ok):  # the pixel just above the foot shows the wall
+            u, v = int(round(uv[j, 0])), int(round(uv[j, 1])) - 2
+            seen = depth[max(v, 0), u]
+            ok[j] = bool(np.isfinite(seen) and abs(seen - z[j]) < 0.05 * z[j])
+    visible = np.flatnonzero(ok)
+    if len(visible) < 20:
+        return None
+    clicks = uv[[visible[int(f * (len(visible) - 1))] for f in fractions]]
+    pos, vel, euler = rec.reference.interpolate(gpst)
+    state = SimpleNamespace(position_ned=pos, euler=euler, velocity_ned=vel, rate_of_turn=0.0)
+    return clicks, float(berth_metrics(state, rec.hull, line)["bow_distance_m"])

@@ -25,23 +25,27 @@ QUAY_N = 15.0
 COPING_M = 1.5  # quay top above the water
 
 
-def _port(seed: int = 0) -> Structure:
+def _planes(*planes: tuple, seed: int = 0) -> Structure:
+    """Structure points on vertical planes (north, east values, heights above the water, σ)."""
     rng = np.random.default_rng(seed)
     parts = []
-
-    def plane(n, e, h, sigma):
+    for n, e, h, sigma in planes:
         e, h = np.meshgrid(e, h)
         p = np.column_stack([np.full(e.size, n), e.ravel(), WATER - h.ravel()])
         p += rng.normal(0.0, sigma, p.shape) * [1, 0.2, 0.2]
         parts.append((p, np.full(len(p), sigma)))
-
-    plane(QUAY_N, np.arange(-25.0, 25.0, 1.3), np.array([0.3, 0.8, 1.3]), 0.05)  # the face
-    plane(QUAY_N + 12.0, np.arange(-30.0, 30.0, 0.8), np.arange(2.0, 12.0, 1.5), 0.3)  # building
-    plane(11.0, np.arange(6.0, 12.0, 0.7), np.array([0.3, 0.7]), 0.05)  # a moored boat
-    plane(9.0, np.arange(-10.0, 10.0, 1.0), np.array([-0.4]), 0.05)  # reflections: under water
     pts = np.concatenate([p for p, _ in parts])
     sigma = np.concatenate([s for _, s in parts])
     return Structure(0.0, pts, sigma, np.arange(len(pts)))
+
+
+def _port(seed: int = 0) -> Structure:
+    return _planes(
+        (QUAY_N, np.arange(-25.0, 25.0, 1.3), np.array([0.3, 0.8, 1.3]), 0.05),  # the face
+        (QUAY_N + 12.0, np.arange(-30.0, 30.0, 0.8), np.arange(2.0, 12.0, 1.5), 0.3),  # building
+        (11.0, np.arange(6.0, 12.0, 0.7), np.array([0.3, 0.7]), 0.05),  # a moored boat
+        (9.0, np.arange(-10.0, 10.0, 1.0), np.array([-0.4]), 0.05),  # reflections: under water
+        seed=seed)
 
 
 def _berth(structure_known: bool = True) -> Berth:
@@ -96,15 +100,76 @@ def test_without_structure_the_line_falls_back_to_the_water_plane_and_says_so():
     line = berth.set_image(state, foot, empty)
     assert line.method == "water-plane" and "water plane" in line.note
     assert berth.status(state, 0.0)["bow_distance_m"] == pytest.approx(TRUE_BOW, abs=0.05)
-    # a 3 px slip on the water plane moves it by metres: that is why the quay face is used
+    # a 3 px slip on the water plane moves it by metres: that is why the quay face is used;
+    # its σ says so
     berth.set_image(state, foot + [0, -3], empty)
-    assert berth.status(state, 0.0)["bow_distance_m"] - TRUE_BOW > 0.5
+    slipped = berth.status(state, 0.0)
+    assert slipped["bow_distance_m"] - TRUE_BOW > 0.5
+    assert slipped["bow_distance_m"] - TRUE_BOW <= 2.0 * slipped["bow_distance_sigma_m"] < 4.0
     # the coping is above the horizon: no water plane there, and no structure
     coping = _pixel(state, [[QUAY_N, -4.0, WATER - COPING_M], [QUAY_N, 5.0, WATER - COPING_M]])
     with pytest.raises(Unprocessable, match="above the horizon"):
         berth.set_image(state, coping, empty)
     # the quay face is found from the coping once there is structure
     assert berth.set_image(state, coping, _port()).method == "quay-face"
+
+
+def test_a_surface_behind_the_water_a_click_shows_is_not_the_quay():
+    """The fault of 2026-11-27 on the bundled recording: the quay face has no points near the
+    right click (a bare stretch of wall), a building behind the quay has, its wall receding
+    from the left click's stretch of quay. The plane through the face's points under the left
+    click and the wall's under the right one lies beyond where the right click's ray meets the
+    water: that pixel shows the quay's water line, so the plane cannot be what it shows. The
+    face's own points farther along are found instead."""
+    state = make_state()
+    berth = _berth()
+    face_e = np.r_[np.arange(-25.0, 3.8, 1.2), np.arange(8.2, 25.0, 1.2)]  # none at 4..8 m
+    wall = np.linspace(0.0, 1.2, 30)[:, None] * [11.0, 17.0] + [QUAY_N + 1.0, -5.0]
+    port = _planes((QUAY_N, face_e, np.array([0.3, 0.8, 1.3]), 0.05))
+    wall_pts = np.column_stack([np.repeat(wall, 4, axis=0),
+                                WATER - np.tile([2.0, 4.0, 6.0, 8.0], len(wall))])
+    port = Structure(0.0, np.vstack([port.points, wall_pts]),
+                     np.r_[port.sigma, np.full(len(wall_pts), 0.05)],
+                     np.arange(len(port.points) + len(wall_pts)))
+    clicks = _pixel(state, [[QUAY_N, -4.0, WATER], [QUAY_N, 6.0, WATER]])
+    line = berth.set_image(state, clicks, port)
+    status = berth.status(state, 0.0)
+    assert line.method == "quay-face", line
+    assert status["bow_distance_m"] == pytest.approx(TRUE_BOW, abs=max(0.15, 0.01 * TRUE_BOW))
+    np.testing.assert_allclose(line.line_ne[:, 0], QUAY_N, atol=0.1)
+
+
+def test_a_plane_behind_points_right_at_a_click_is_not_the_clicked_surface():
+    """Far off, the quay has only a few converged points (too few to stand as a face) and the
+    buildings behind it many; with the water level unknown nothing bounds the range from the
+    water. The quay's points right at the clicks are a nearer surface there: the buildings'
+    plane is not what the clicks show, and no line is made up from it."""
+    state = make_state()
+    berth = _berth(structure_known=False)
+    port = _planes((QUAY_N, np.array([-4.3, -3.7, 5.7, 6.3]), np.array([0.5]), 0.05),
+                   (QUAY_N + 12.0, np.arange(-30.0, 30.0, 0.8), np.arange(2.0, 12.0, 1.5), 0.1))
+    clicks = _pixel(state, [[QUAY_N, -4.0, WATER - 0.5], [QUAY_N, 6.0, WATER - 0.5]])
+    with pytest.raises(Unprocessable, match="no converged port structure near the clicks"):
+        berth.set_image(state, clicks, port)
+
+
+def test_a_boat_side_between_the_clicks_is_not_taken_for_the_quay():
+    """Early in an approach (the quay 45 m off, none of its points converged yet) a boat's
+    side 30 m off, between the clicks' rays but metres from either, stands as a plane with
+    points within a fifth of the image of both clicks; neither click's ray meets it near its
+    points, so it is not what they show. The line falls back to the water plane, whose σ covers
+    its error (a 3 px slip included)."""
+    state = make_state()
+    berth = _berth()
+    far, true_bow = 45.0, 45.0 - 3.5
+    boat = _planes((30.0, np.arange(-4.0, 5.0, 0.25), np.array([0.2, 0.5, 0.8]), 0.05))
+    for slip in ([0, 0], [0, 3], [3, -3]):
+        clicks = _pixel(state, [[far, -15.0, WATER], [far, 15.0, WATER]]) + slip
+        line = berth.set_image(state, clicks, boat)
+        status = berth.status(state, 0.0)
+        assert line.method == "water-plane", (slip, line)
+        error = abs(status["bow_distance_m"] - true_bow)
+        assert error <= 2.0 * status["bow_distance_sigma_m"], (slip, status)
 
 
 def test_plan_clicks_snap_to_the_quay_face():

@@ -916,30 +916,6 @@ def default_server() -> Iterator[str]:
         yield base
 
 
-def _true_quay_foot(rec, gpst: float, width: int, height: int):
-    """Pixels of the true quay foot (north 0, on the water) seen from the reference camera
-    pose at ``gpst`` — two of them, a fifth of the visible foot in from either end — and the
-    true bow distance (from the reference pose to the quay face)."""
-    from types import SimpleNamespace
-
-    from backend.geometry import berth_metrics
-    from evaluation.truth import project, true_cameras
-
-    truth = true_cameras(rec, np.array([gpst]), None)
-    east = np.linspace(-60.0, 60.0, 481)
-    foot = np.column_stack([np.zeros_like(east), east, np.zeros_like(east)])
-    uv, _ = project(rec.calibration.camera, truth.C_level_to_camera[0], truth.position[0],
-                    foot)
-    ok = np.flatnonzero(np.isfinite(uv).all(axis=1) & (uv[:, 0] > 40) & (uv[:, 0] < width - 40)
-                        & (uv[:, 1] > 0) & (uv[:, 1] < height))
-    assert len(ok) > 20, "the quay foot is not in view"
-    clicks = uv[[ok[len(ok) // 5], ok[4 * len(ok) // 5]]]
-    pos, vel, euler = rec.reference.interpolate(gpst)
-    state = SimpleNamespace(position_ned=pos, euler=euler, velocity_ned=vel, rate_of_turn=0.0)
-    bow = berth_metrics(state, rec.hull, np.array([[0.0, -60.0], [0.0, 60.0]]))
-    return clicks, bow["bow_distance_m"]
-
-
 def _click_berth(page, clicks) -> dict:
     before = (frame(page)["overlay"].get("berth") or {}).get("line_ne")
     page.click("#berth-set")
@@ -950,19 +926,13 @@ def _click_berth(page, clicks) -> dict:
                             f"'{json.dumps(before, separators=(',', ':'))}'", timeout_s=15)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "a real fault, found 2026-11-27 (numpy 2.4.6, scipy 1.17.1, OpenCV 5.0.0.93; the commit "
-    "that passed CI on 2026-11-25 fails the same way here): at 60 s the bundled recording's "
-    "converged structure has points of the pontoon 3-13 m off under the left click and none "
-    "above the water within 48 px of the right one, and the quay-face fit's nearest-surface "
-    "rule takes a plane through the pontoon, 40 deg off the quay: bow 22.0 m +-0.09 against "
-    "13.3 m true (backend/berth.py _front_face)"))
 def test_berth_clicks_on_the_true_quay_foot_give_the_true_bow_distance(browser,
                                                                         default_server: str):
     """On the bundled (simulated) recording at 60 s, the officer seeks there (the badge shows
     the target and the progress), then clicks the quay foot where the reference pose projects
     it: the line is fitted to the quay face and the bow distance is the true one within
     max(0.15 m, 1 %); clicks slipped by 3 px give the same within 0.3 m."""
+    from evaluation.truth import quay_foot_clicks
     from recordings.format import load
 
     rec = load(DEFAULT_RECORDING)
@@ -995,7 +965,9 @@ def test_berth_clicks_on_the_true_quay_foot_give_the_true_bow_distance(browser,
         print(f"seek 0 → {QUAY_TIME_S:g} s took {took:.1f} s ({seeking[-1:]})")
         assert pg.evaluate("() => window.berthing.session.state") == "paused"
         _wait(pg, "b.trust.trusted", 5)
-        clicks, true_bow = _true_quay_foot(rec, f["gpst"], f["width"], f["height"])
+        seen = quay_foot_clicks(rec, f["gpst"])
+        assert seen is not None, "the quay foot is not in view"
+        clicks, true_bow = seen
         assert 10.0 <= true_bow <= 20.0
         tolerance = max(0.15, 0.01 * true_bow)
         berth = _click_berth(pg, clicks)["overlay"]["berth"]
