@@ -276,6 +276,12 @@ class TargetTracker:
         if match is None:
             return self._declare_lost(predicted, cloud, flow, size, -1.0, "no match window")
         p_hat, score = match
+        if np.linalg.norm(p_hat - predicted) > p.flow_search_px:
+            # Two similar places (a facade's next window, a row of fenders): continuity
+            # decides — the best match where the flow puts the point, when it is nearly as good
+            near = _match(gray, self.template, predicted, p.flow_search_px)
+            if near is not None and near[1] >= score - p.ambiguity_margin:
+                p_hat, score = near
         d = np.linalg.norm(cloud - p_hat, axis=1)
         weights = np.exp(-d / p.sigma_o**2)
         weights /= weights.sum()

@@ -477,10 +477,6 @@ def _quay_point(f: dict) -> tuple[int, list[float]]:
     return pts["id"][best], pts["uv"][best]
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "fails in the whole suite on a fresh install (2026-11-27, three clean runs, with and "
-    "without that day's tracking change): 2 s after the click the target is drawn 36 px below "
-    "the structure point it was designated on; the test alone passes (5 of 5); not diagnosed"))
 def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
     wait_trusted(page)
     f = wait_frame(page, "f => f.overlay && f.overlay.video.points.uv.length > 20")
