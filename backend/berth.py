@@ -13,7 +13,8 @@ camera's height over the water).
 
 A wrong plane is worse than none: the fit is refused (the water plane then) when the plane
 lies beyond where a click's ray meets the water, behind converged points right at a click,
-or where a click's ray meets it away from all its points (a boat's side between the clicks).
+or does not extend on both sides of where a click's ray meets it (a moored boat's side
+ending beside a click).
 ``benchmarks/berth_clicks.py`` measures it over many recordings.
 """
 
@@ -55,13 +56,7 @@ MIN_POINT_SIGMA_M = 0.02  # a structure point's σ taken as at least this in the
 CLICK_SLIP_PX = 2.0
 CAMERA_HEIGHT_SIGMA_M = 0.1
 OCCLUSION_SIGMAS = 3.0
-# A face's points must lie on both sides of where each click's ray meets it, or reach to within
-# this of it (at least the minimum, else the fraction of that range): a plane that only
-# extrapolates to a click is not shown to be what the click is on (a boat's side, say, between
-# the clicks in front of the quay).
-END_REACH_M = 2.0
 MIN_BLOCKERS = 2  # converged points at a click in front of a plane that rule it out
-END_REACH_FRACTION = 0.15
 # A recording's own berth line is placed through the fused absolute position (standalone GNSS:
 # metre-level), not through what the camera sees.
 RECORDING_LINE_SIGMA_M = 2.0
@@ -223,9 +218,7 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     for end, b in zip(ends, bound, strict=True):  # the re-fitted face still answers for both clicks
         rng = float(np.linalg.norm(end - cam[:2]))
         offset = along - float((end - fit.centre) @ fit.direction)
-        bracketed = offset.min() < 0 < offset.max()
-        if rng > b or not (bracketed or np.abs(offset).min()
-                           <= max(END_REACH_M, END_REACH_FRACTION * rng)):
+        if rng > b or not offset.min() < 0 < offset.max():
             return None
     # the points' errors are not independent (one VO scale, the poses they were triangulated
     # from): a σ proportional to the range stands for what they share
@@ -344,15 +337,14 @@ def _front_face(pts: np.ndarray, under: list[np.ndarray], sector: np.ndarray,
     standing &= (ranges[0] <= bound[0]) & (ranges[1] <= bound[1])
     standing &= ~_in_front(*blockers, pa, normal, cam)
     along = np.einsum("hnk,hk->hn", pts[cand, :2][None] - pa[:, None], d)
-    # the plane's points reach where each click meets it
+    # the plane's points lie on both sides of where each click's ray meets it: a plane that
+    # ends short of a click (a moored boat's side beside it) is not shown to be what it is on
     for r, rng in zip(rays, ranges, strict=True):
         plan = r[:2] / max(float(np.linalg.norm(r[:2])), 1e-9)
         with np.errstate(invalid="ignore"):
             end = np.einsum("hk,hk->h", cam[:2] + rng[:, None] * plan - pa, d)
             offset = np.where(inlier, along - end[:, None], np.nan)
-            gap = np.nanmin(np.abs(np.where(inlier, offset, np.inf)), axis=1)
-            bracketed = (np.nanmin(offset, axis=1) < 0) & (np.nanmax(offset, axis=1) > 0)
-            standing &= bracketed | (gap <= np.maximum(END_REACH_M, END_REACH_FRACTION * rng))
+            standing &= (np.nanmin(offset, axis=1) < 0) & (np.nanmax(offset, axis=1) > 0)
     if not standing.any():
         return None
     nearest = float(reach[standing].min())
