@@ -82,7 +82,9 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     - time to contact: the first hull point to reach the line at its present closing speed
       (None when nothing closes);
     - σ of the bow and stern distance: the line's σ (offset at its middle, direction), the
-      fused position's σ across the line and the heading's σ through the point's lever arm.
+      fused position's σ across the line and the heading's σ through the point's lever arm;
+      σ of the angle: the line's direction and the heading; σ of the time to contact: the
+      first point's distance σ over its closing speed.
     """
     line = np.asarray(line_ne, dtype=float).reshape(2, 2)
     direction = line[1] - line[0]
@@ -127,14 +129,21 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     out["along_berth_mps"] = float(np.dot(velocity, along))
     angle = float(np.degrees(np.arcsin(np.clip(abs(np.dot(heading, normal)), 0.0, 1.0))))
     out["angle_deg"] = angle if out["bow_distance_m"] <= out["stern_distance_m"] else -angle
+    out["angle_sigma_deg"] = float(np.degrees(np.sqrt(yaw_var + np.radians(line_sigma_deg or 0.0)
+                                                      ** 2)))
     # time to contact: the whole outline (a shoulder or quarter may touch first)
     dense = densify(outline_body, 0.25)
     levers = dense @ R.T
     dist = (centre + levers - line[0]) @ normal
     closing = -(velocity + r * np.column_stack([-levers[:, 1], levers[:, 0]])) @ normal
-    moving = closing > MIN_CLOSING_MPS
-    out["time_to_contact_s"] = float(np.min(np.maximum(dist[moving], 0.0) / closing[moving])) \
-        if moving.any() else None
+    moving = np.flatnonzero(closing > MIN_CLOSING_MPS)
+    out["time_to_contact_s"] = out["time_to_contact_sigma_s"] = None
+    if len(moving):
+        ttc = np.maximum(dist[moving], 0.0) / closing[moving]
+        first = int(moving[np.argmin(ttc)])
+        out["time_to_contact_s"] = float(ttc.min())
+        # the first point's distance σ over its closing speed (the speed's σ is mm/s)
+        out["time_to_contact_sigma_s"] = point(dense[first])[2] / float(closing[first])
     out["nearest_distance_m"] = float(dist.min())
     return out
 

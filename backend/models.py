@@ -488,9 +488,13 @@ class BerthGeometry(BaseModel):
         None, description="speed along the line, positive the way the bow points along it")
     angle_deg: float | None = Field(
         None, description="between the centreline and the line, positive bow in")
+    angle_sigma_deg: float | None = Field(
+        None, description="1-σ: the line's direction and the heading's")
     time_to_contact_s: float | None = Field(
         None, description="until the first hull point reaches the line at the present closing "
                           "speeds; null when nothing closes")
+    time_to_contact_sigma_s: float | None = Field(
+        None, description="1-σ: that point's distance σ over its closing speed")
     nearest_distance_m: float | None = Field(None, description="of the whole hull outline")
 
 

@@ -219,6 +219,13 @@ def test_berth_metrics_bow_stern_distance_and_approach_speed():
     m = berth_metrics(state, HULL, line, line_sigma_m=0.05)
     assert m["bow_distance_sigma_m"] == pytest.approx(np.sqrt(0.01**2 + 0.0035**2 + 0.05**2),
                                                       abs=1e-6)
+    # the angle's σ: the heading's (1 mrad), and the line's direction; the time to contact's:
+    # the first point's distance σ (a side point: lever across the line ≤ 3.5 m) over 0.2 m/s
+    assert m["angle_sigma_deg"] == pytest.approx(np.degrees(0.001), rel=1e-6)
+    assert np.hypot(0.01, 0.05) / 0.2 <= m["time_to_contact_sigma_s"] \
+        <= np.sqrt(0.01**2 + 0.0035**2 + 0.05**2) / 0.2 + 1e-9
+    m = berth_metrics(state, HULL, line, line_sigma_deg=2.0)
+    assert m["angle_sigma_deg"] == pytest.approx(np.hypot(2.0, np.degrees(0.001)), rel=1e-6)
     # turning to port (negative rate) swings the bow towards the quay, the stern away
     state.rate_of_turn = -0.05
     m = berth_metrics(state, HULL, line)
@@ -240,6 +247,7 @@ def test_berth_metrics_at_an_angle_take_the_ends_not_midships():
     assert m["along_berth_mps"] == pytest.approx(0.3)
     assert m["bow_approach_mps"] == pytest.approx(-0.05)
     assert m["time_to_contact_s"] is None  # opening: no contact
+    assert m["time_to_contact_sigma_s"] is None
 
 
 def test_polygon_distance_and_water_plane_point():

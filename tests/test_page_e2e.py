@@ -972,6 +972,11 @@ def test_berth_clicks_on_the_true_quay_foot_give_the_true_bow_distance(browser,
         assert bow == pytest.approx(true_bow, abs=tolerance)
         assert berth["bow_distance_sigma_m"] < 0.3
         assert "quay face" in pg.locator("#berth-method").inner_text()
+        # the angle to the berth and the time to contact carry their σ too
+        angle = pg.locator("#angle").inner_text()
+        assert re.search(r"±\d+(\.\d)?°", angle), angle
+        if berth["time_to_contact_s"] is not None:
+            assert "±" in pg.locator("#ttc").inner_text()
         shot(pg, "11_berth_true_quay_foot")
         print(f"bow {bow:.3f} m ±{berth['bow_distance_sigma_m']:.3f}, true {true_bow:.3f} m")
         for du, dv in ((0, 3), (3, -3)):
