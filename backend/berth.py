@@ -158,7 +158,10 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     surface is the nearest (what a pixel shows is the first surface along its ray), and of the
     planes of that surface the best supported is fitted to all its points between the clicks
     and up to ``EXTEND_M`` beyond them. No plane may lie beyond where a click's ray meets the
-    water (``water_bounds``): that pixel would show the water, not it."""
+    water (``water_bounds``: that pixel would show the water, not it), behind MIN_BLOCKERS
+    converged points right at a click (the innermost radius: a nearer surface is there), nor
+    end short of where a click's ray meets it (its points on one side only); the fitted line is
+    held to the same."""
     pts = np.asarray(structure.points, dtype=float).reshape(-1, 3)
     if len(pts) < MIN_FACE_POINTS:
         return None
