@@ -139,3 +139,38 @@ def test_recording_without_reference_is_an_error(tmp_path: Path, capsys) -> None
 def test_window_beyond_the_recording_is_an_error() -> None:
     with pytest.raises(ValueError, match="no window"):
         replay_report(BUNDLED, ReportOptions(init_s=20.0, end_s=15.0))
+
+
+def test_quay_foot_clicks_lie_on_the_true_quay_foot(sim_recording: Path) -> None:
+    """The berth benchmark's and the page test's clicks (``evaluation.truth.quay_foot_clicks``):
+    seen from the true camera, each click's ray meets the water on the recording's berth line,
+    and the bow is nearer the line than the ship's centre on her approach."""
+    import cv2
+    import numpy as np
+
+    from evaluation.truth import quay_foot_clicks, rebuild_scene, true_cameras
+
+    rec = load(sim_recording)
+    t = float(rec.manifest.start_gpst) + 10.0
+    seen = quay_foot_clicks(rec, t)
+    assert seen is not None
+    clicks, bow = seen
+    cam = rec.calibration.camera
+    truth = true_cameras(rec, np.array([t]), None)
+    line = np.asarray(rec.hull.berth_line_ned, float)
+    d = (line[1] - line[0]) / np.linalg.norm(line[1] - line[0])
+
+    def across(p: np.ndarray) -> float:
+        return abs(d[0] * (p[1] - line[0, 1]) - d[1] * (p[0] - line[0, 0]))
+
+    for u, v in clicks:
+        xy = cv2.undistortPoints(np.array([[[u, v]]], float), np.asarray(cam.K, float),
+                                 np.asarray(cam.distortion, float)).reshape(2)
+        ray = truth.C_level_to_camera[0].T @ np.array([xy[0], xy[1], 1.0])
+        c = truth.position[0]
+        hit = c + (0.0 - c[2]) / ray[2] * ray  # the water: down 0 in the reference frame
+        off = across(hit[:2])
+        assert off < 0.05, (u, v, off)  # on the line (exact projections: no pixel rounding)
+    pos = rec.reference.interpolate(t)[0]
+    assert 0.0 < bow < across(pos[:2])
+    assert rebuild_scene(rec) is not None  # the visibility check ran against the scene
