@@ -181,17 +181,14 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     mid = float(_wrap(click_az[0] + _wrap(click_az[1] - click_az[0]) / 2))
     sector = usable & (np.abs(_wrap(azimuths - mid)) <= half + np.radians(SECTOR_MARGIN_DEG))
     bound = water_bounds(projector, cam, rays, water_down_m)
-    with np.errstate(invalid="ignore"):  # the converged points right at each click
-        at = [usable & (np.hypot(uv[:, 0] - u, uv[:, 1] - v) <= CLICK_RADII[0] * projector.width)
-              for u, v in clicks]
-    blockers = np.flatnonzero(at[0] | at[1])
+    px = [np.nan_to_num(np.hypot(uv[:, 0] - u, uv[:, 1] - v), nan=np.inf) for u, v in clicks]
+    at = usable & ((px[0] <= CLICK_RADII[0] * projector.width)  # right at a click
+                   | (px[1] <= CLICK_RADII[0] * projector.width))
+    blockers = (pts[at, :2], sigma[at])
     chosen = None
     for radius in CLICK_RADII:  # the nearest points under the clicks first
-        with np.errstate(invalid="ignore"):
-            under = [usable & (np.hypot(uv[:, 0] - u, uv[:, 1] - v) <= radius * projector.width)
-                     for u, v in clicks]
-        chosen = _front_face(pts, under, sector, rays, cam, bound,
-                             (pts[blockers, :2], sigma[blockers]))
+        under = [usable & (d <= radius * projector.width) for d in px]
+        chosen = _front_face(pts, under, sector, rays, cam, bound, blockers)
         if chosen is not None:
             break
     if chosen is None:
@@ -214,15 +211,11 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     ends = [_ray_line(cam[:2], az, fit.centre, fit.direction) for az in click_az]
     if any(e is None for e in ends) or np.linalg.norm(ends[1] - ends[0]) < MIN_LENGTH_M:
         return None
-    normal = np.array([-fit.direction[1], fit.direction[0]])
-    if _in_front(pts[blockers, :2], sigma[blockers], fit.centre[None], normal[None], cam).any():
-        return None  # the re-fit swung behind what a click shows
-    along = (pts[members, :2] - fit.centre) @ fit.direction
-    for end, b in zip(ends, bound, strict=True):  # the re-fitted face still answers for both clicks
-        rng = float(np.linalg.norm(end - cam[:2]))
-        offset = along - float((end - fit.centre) @ fit.direction)
-        if rng > b or not offset.min() < 0 < offset.max():
-            return None
+    shown, _ = _shown_at_clicks(fit.centre[None], fit.direction[None], pts[members, :2],
+                                np.ones((1, len(members)), dtype=bool), rays, cam, bound,
+                                blockers)
+    if not shown[0]:
+        return None  # the re-fit swung to where the clicks cannot be on it
     # the points' errors are not independent (one VO scale, the poses they were triangulated
     # from): a σ proportional to the range stands for what they share
     shared = CORRELATED_FRACTION * float(np.linalg.norm(fit.centre - cam[:2]))
@@ -303,14 +296,40 @@ def _in_front(points_ne: np.ndarray, sigma: np.ndarray, on_plane: np.ndarray,
     return (depth > FRONT_DEPTH_M + 2.0 * sigma[None]).sum(axis=1) >= MIN_BLOCKERS
 
 
+def _shown_at_clicks(on_plane: np.ndarray, direction: np.ndarray, points_ne: np.ndarray,
+                     inlier: np.ndarray, rays: list[np.ndarray], cam: np.ndarray,
+                     bound: np.ndarray, blockers: tuple[np.ndarray, np.ndarray]
+                     ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Per vertical plane (a point on it, its unit direction in plan: (H, 2) each; its points:
+    ``inlier`` (H, N) of ``points_ne``): whether it can be what both clicks show, and the plan
+    range along each click's ray to it. It cannot when a ray meets it behind the camera or
+    beyond ``bound`` (the water that pixel shows), when MIN_BLOCKERS ``blockers`` (plan points
+    right at a click, σ) lie in front of it, or when its points do not lie on both sides of
+    where a ray meets it (a moored boat's side ending beside a click)."""
+    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+    along = np.einsum("hnk,hk->hn", points_ne[None] - on_plane[:, None], direction)
+    shown = ~_in_front(*blockers, on_plane, normal, cam)
+    ranges = []
+    for r, b in zip(rays, bound, strict=True):
+        norm = max(float(np.linalg.norm(r[:2])), 1e-9)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rng = np.einsum("hk,hk->h", on_plane - cam[:2], normal) / (normal @ r[:2]) * norm
+            end = np.einsum("hk,hk->h", cam[:2] + rng[:, None] * r[:2] / norm - on_plane,
+                            direction)
+            offset = np.where(inlier, along - end[:, None], np.nan)
+            shown &= np.isfinite(rng) & (rng > 0) & (rng <= b)
+            shown &= (np.nanmin(offset, axis=1) < 0) & (np.nanmax(offset, axis=1) > 0)
+        ranges.append(rng)
+    return shown, ranges
+
+
 def _front_face(pts: np.ndarray, under: list[np.ndarray], sector: np.ndarray,
                 rays: list[np.ndarray], cam: np.ndarray, bound: np.ndarray,
                 blockers: tuple[np.ndarray, np.ndarray]
                 ) -> tuple[np.ndarray, np.ndarray] | None:
     """(point, direction) of the nearest well-supported vertical plane through a point under
-    each click (``fit_quay_face``), in front of the water each click shows (``bound``) and of
-    the converged points right at the clicks (``blockers``: plan points, σ), None when there is
-    none."""
+    each click (``fit_quay_face``) that can be what the clicks show (``_shown_at_clicks``),
+    None when there is none."""
     if any(m.sum() < 1 for m in under):
         return None
     ia, ib = np.flatnonzero(under[0]), np.flatnonzero(under[1])
@@ -329,25 +348,9 @@ def _front_face(pts: np.ndarray, under: list[np.ndarray], sector: np.ndarray,
     support_b = (inlier & under[1][cand][None]).sum(axis=1)
     total = (inlier & sector[cand][None]).sum(axis=1)
     standing = (support_a >= 2) & (support_b >= 2) & (total >= MIN_FACE_POINTS)
-    # range along each click ray to the hypothesis' plane (in plan)
-    ranges = []
-    for r in rays:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ranges.append(np.einsum("hk,hk->h", pa - cam[:2], normal) / (normal @ r[:2])
-                          * float(np.linalg.norm(r[:2])))
+    shown, ranges = _shown_at_clicks(pa, d, pts[cand, :2], inlier, rays, cam, bound, blockers)
+    standing &= shown
     reach = np.maximum(ranges[0], ranges[1])
-    standing &= np.isfinite(reach) & (ranges[0] > 0) & (ranges[1] > 0)
-    standing &= (ranges[0] <= bound[0]) & (ranges[1] <= bound[1])
-    standing &= ~_in_front(*blockers, pa, normal, cam)
-    along = np.einsum("hnk,hk->hn", pts[cand, :2][None] - pa[:, None], d)
-    # the plane's points lie on both sides of where each click's ray meets it: a plane that
-    # ends short of a click (a moored boat's side beside it) is not shown to be what it is on
-    for r, rng in zip(rays, ranges, strict=True):
-        plan = r[:2] / max(float(np.linalg.norm(r[:2])), 1e-9)
-        with np.errstate(invalid="ignore"):
-            end = np.einsum("hk,hk->h", cam[:2] + rng[:, None] * plan - pa, d)
-            offset = np.where(inlier, along - end[:, None], np.nan)
-            standing &= (np.nanmin(offset, axis=1) < 0) & (np.nanmax(offset, axis=1) > 0)
     if not standing.any():
         return None
     nearest = float(reach[standing].min())

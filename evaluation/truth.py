@@ -6,11 +6,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 import cv2
 import numpy as np
 
+from backend.geometry import berth_metrics
 from estimator.frames import euler_to_dcm
 from estimator.records import CameraCalibration
 from recordings.format import Recording
@@ -177,10 +179,6 @@ def quay_foot_clicks(rec: Recording, gpst: float, fractions: Sequence[float] = (
     visible stretch of it, and the true bow distance to it. Only the foot not hidden (by a
     moored boat, for a simulated recording) counts as visible; None when under 20 of its
     points (every 0.25 m) are."""
-    from types import SimpleNamespace
-
-    from backend.geometry import berth_metrics
-
     if rec.reference is None or rec.hull.berth_line_ned is None:
         return None
     line = np.asarray(rec.hull.berth_line_ned, float).reshape(2, 2)
@@ -193,9 +191,7 @@ def quay_foot_clicks(rec: Recording, gpst: float, fractions: Sequence[float] = (
           & (uv[:, 0] < cam.width - 1 - margin_px) & (uv[:, 1] > 0) & (uv[:, 1] < cam.height - 1))
     scene = rebuild_scene(rec)
     if scene is not None and ok.any():
-        _img, depth = scene.render(truth.C_level_to_camera[0], truth.position[0],
-                                   gpst - float(rec.manifest.start_gpst), cam,
-                                   np.random.default_rng(0), return_depth=True)
+        depth = scene_depth(scene, truth, 0, gpst - float(rec.manifest.start_gpst), cam)
         for j in np.flatnonzero(ok):  # the pixel just above the foot shows the wall
             u, v = int(round(uv[j, 0])), int(round(uv[j, 1])) - 2
             seen = depth[max(v, 0), u]

@@ -13,6 +13,15 @@ function fmtSigma(s) {
   return s == null ? "" : `±${s.toFixed(s < 0.095 ? 2 : 1)}`;
 }
 
+function fmtSigmaDeg(s) {
+  return s == null ? "" : ` ±${s.toFixed(s < 0.95 ? 1 : 0)}°`;
+}
+
+function fmtSigmaTime(s) {
+  if (s == null) return "";
+  return s >= 60 ? ` ±${(s / 60).toFixed(1)} min` : ` ±${s.toFixed(s < 9.5 ? 1 : 0)} s`;
+}
+
 const METHOD_TEXT = {
   "quay-face": (b) => `quay face · ${b.support_points} pts · σ ${b.sigma_m?.toFixed(2) ?? "–"} m`,
   "water-plane": () => "water plane: no quay points near the clicks",
@@ -80,12 +89,10 @@ export class Panel {
     const along = berth.along_berth_mps;
     set("along", along == null ? "–" : `${Math.abs(along * 100).toFixed(0)}<span class="unit">cm/s ${along >= 0 ? "fwd" : "aft"}</span>`);
     const angle = berth.angle_deg;
-    const angleSigma = berth.angle_sigma_deg == null ? ""
-      : ` ±${berth.angle_sigma_deg.toFixed(berth.angle_sigma_deg < 0.95 ? 1 : 0)}°`;
+    const angleSigma = fmtSigmaDeg(berth.angle_sigma_deg);
     set("angle", angle == null ? "–" : `${Math.abs(angle).toFixed(1)}<span class="unit">° ${Math.abs(angle) < 0.5 ? "" : angle > 0 ? "bow in" : "stern in"}${angleSigma}</span>`);
     const ttc = berth.time_to_contact_s;
-    const ttcSigma = berth.time_to_contact_sigma_s == null ? ""
-      : ` ±${berth.time_to_contact_sigma_s >= 60 ? `${(berth.time_to_contact_sigma_s / 60).toFixed(1)} min` : `${berth.time_to_contact_sigma_s.toFixed(berth.time_to_contact_sigma_s < 9.5 ? 1 : 0)} s`}`;
+    const ttcSigma = fmtSigmaTime(berth.time_to_contact_sigma_s);
     set("ttc", ttc == null ? "none" : ttc >= 600 ? "&gt;10<span class=\"unit\">min</span>"
       : ttc >= 60 ? `${Math.floor(ttc / 60)}:${String(Math.round(ttc % 60)).padStart(2, "0")}<span class="unit">min${ttcSigma}</span>`
         : `${ttc.toFixed(0)}<span class="unit">s${ttcSigma}</span>`);
