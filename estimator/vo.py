@@ -445,57 +445,88 @@ def sample_patches(image: np.ndarray, centres: np.ndarray, warps: np.ndarray, ha
     return out.reshape(len(centres), side, side, *image.shape[2:])
 
 
-def normalised(patches: np.ndarray) -> np.ndarray:
-    """Patches with zero mean and unit σ each (gain and offset of the grey values removed)."""
-    mean = patches.mean(axis=(1, 2), keepdims=True)
-    std = np.maximum(patches.std(axis=(1, 2), keepdims=True), 1.0)
-    return ((patches - mean) / std).astype(np.float32)
+# The affine warp's parameters (centre x, y, warp 00, 01, 10, 11) each have a Jacobian of one
+# gradient (x or y) times one monomial of the template pixel (1, x or y).
+_GRAD_OF = np.array([0, 1, 0, 0, 1, 1])
+_MONOMIAL_OF = np.array([0, 0, 1, 2, 1, 2])
 
 
-def align_affine(image_and_gradients: np.ndarray, templates: np.ndarray, centres: np.ndarray,
-                 warps: np.ndarray, iterations: int
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss–Newton alignment of normalised ``templates`` (N, S, S) on an image under an affine
-    warp (centre and 2x2 ``warps``, as in ``sample_patches``), started from the given ones.
-    ``image_and_gradients`` stacks the image and its x and y gradients (H, W, 3), float32.
-    Returns the centres, the warps and the normalised correlation at the end."""
-    n, side = len(templates), templates.shape[1]
-    half = side // 2
-    x, y = (c.ravel() for c in np.meshgrid(np.arange(-half, half + 1.0),
-                                           np.arange(-half, half + 1.0)))
-    # The parameters (centre x, y, warp 00, 01, 10, 11) each have a Jacobian of one image
-    # gradient (x or y) times one monomial of the template pixel (1, x or y): the normal
-    # matrix is a few weighted sums of gradient products, one matrix product for all tracks.
-    grad_of = np.array([0, 1, 0, 0, 1, 1])
-    monomial_of = np.array([0, 0, 1, 2, 1, 2])
-    monomials = np.stack([np.ones_like(x), x, y]).T.astype(np.float32)  # (P, 3)
+def _template_grid(half: int) -> tuple[np.ndarray, np.ndarray]:
+    """The template pixels' offsets (2, P) and their monomials (1, x, y) as (P, 3), float32."""
+    x, y = (c.ravel() for c in np.meshgrid(np.arange(-half, half + 1, dtype=np.float32),
+                                           np.arange(-half, half + 1, dtype=np.float32)))
+    return np.stack([x, y]), np.stack([np.ones_like(x), x, y]).T
+
+
+def template_gradients(templates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """x and y gradients (N, P) of bordered templates (N, S+2, S+2) at their inner S x S
+    pixels (central differences)."""
+    n = len(templates)
+    gx = 0.5 * (templates[:, 1:-1, 2:] - templates[:, 1:-1, :-2])
+    gy = 0.5 * (templates[:, 2:, 1:-1] - templates[:, :-2, 1:-1])
+    return gx.reshape(n, -1), gy.reshape(n, -1)
+
+
+def take_templates(image: np.ndarray, centres: np.ndarray, half: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Templates of ``image`` (blurred, float32) around ``centres`` for ``align_affine``: the
+    patches with a one-pixel border (N, S+2, S+2), normalised to zero mean and unit σ over
+    their inner S x S pixels, and the inverse of each one's damped Gauss–Newton normal matrix
+    (N, 6, 6). The alignment is inverse compositional (Baker & Matthews): its Jacobian is the
+    template's, so the normal matrix is formed once here, not at every step of every frame."""
+    n = len(centres)
+    eye = np.broadcast_to(np.eye(2), (n, 2, 2))
+    border = sample_patches(image, np.asarray(centres, float), eye, half + 1)
+    inner = border[:, 1:-1, 1:-1]
+    mean = inner.mean(axis=(1, 2), keepdims=True)
+    std = np.maximum(inner.std(axis=(1, 2), keepdims=True), 1.0)
+    templates = ((border - mean) / std).astype(np.float32)
+    gx, gy = template_gradients(templates)
+    _offsets, monomials = _template_grid(half)
     products = np.column_stack([monomials[:, i] * monomials[:, j]
                                 for i in range(3) for j in range(3)])  # (P, 9)
-    grad_pair = grad_of[:, None] + grad_of[None, :]  # 0: gx², 1: gx·gy, 2: gy²
-    product_of = 3 * monomial_of[:, None] + monomial_of[None, :]
+    sums = (np.stack([gx * gx, gx * gy, gy * gy], axis=1).reshape(3 * n, -1)
+            @ products).reshape(n, 3, 9)
+    grad_pair = _GRAD_OF[:, None] + _GRAD_OF[None, :]  # 0: gx², 1: gx·gy, 2: gy²
+    product_of = 3 * _MONOMIAL_OF[:, None] + _MONOMIAL_OF[None, :]
+    H = sums[:, grad_pair, product_of].astype(float)
     # Levenberg damping, and a small pull of the warp to its start (a patch with one dominant
     # edge leaves part of it free).
-    floor = np.diag([1e-3, 1e-3, 1.0, 1.0, 1.0, 1.0])
-    centres, warps = centres.copy(), warps.copy()
-    target = templates.reshape(n, -1)
-    ncc = np.zeros(n)
+    H += 0.1 * H * np.eye(6) + np.diag([1e-3, 1e-3, 1.0, 1.0, 1.0, 1.0])
+    return templates, np.linalg.inv(H)
+
+
+def align_affine(image: np.ndarray, templates: np.ndarray, h_inv: np.ndarray,
+                 centres: np.ndarray, warps: np.ndarray, iterations: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss–Newton alignment of ``templates`` (bordered and normalised, with their
+    ``h_inv``: ``take_templates``) on ``image`` (float32, blurred as the templates' image was)
+    under an affine warp (centre and 2x2 ``warps``, as in ``sample_patches``), started from the
+    given ones; inverse compositional: each step is solved in the template's frame and the
+    warp composed with its inverse. Returns the centres, the warps and the normalised
+    correlation at the end."""
+    n, side = len(templates), templates.shape[1] - 2
+    (x, y), monomials = _template_grid(side // 2)
+    gx, gy = template_gradients(templates)
+    target = templates[:, 1:-1, 1:-1].reshape(n, -1)
+    centres, warps = centres.astype(float), warps.astype(float)
+    residual = np.zeros_like(target)
     for _ in range(iterations):
-        sampled = sample_patches(image_and_gradients, centres, warps, half).reshape(n, -1, 3)
-        patch = sampled[..., 0]
+        c, w = centres.astype(np.float32), warps.astype(np.float32)
+        patch = cv2.remap(image, c[:, :1] + w[:, 0, :1] * x + w[:, 0, 1:] * y,
+                          c[:, 1:] + w[:, 1, :1] * x + w[:, 1, 1:] * y, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
         mean = patch.mean(axis=1, keepdims=True)
-        std = np.maximum(patch.std(axis=1, keepdims=True), np.float32(1.0))
+        std = np.maximum(np.sqrt(np.maximum((patch * patch).mean(axis=1, keepdims=True)
+                                            - mean * mean, 0.0)), np.float32(1.0))
         residual = (patch - mean) / std - target
-        gx, gy = sampled[..., 1] / std, sampled[..., 2] / std
-        sums = (np.stack([gx * gx, gx * gy, gy * gy], axis=1).reshape(3 * n, -1)
-                @ products).reshape(n, 3, 9)
-        H = sums[:, grad_pair, product_of].astype(float)
-        H += 0.1 * H * np.eye(6) + floor
-        g = (np.stack([gx * residual, gy * residual], axis=1).reshape(2 * n, -1)
-             @ monomials).reshape(n, 2, 3)[:, grad_of, monomial_of]
-        step = -np.linalg.solve(H, g[..., None].astype(float))[..., 0]
-        centres += step[:, :2]
-        warps += step[:, 2:].reshape(n, 2, 2)
-        ncc = 1.0 - 0.5 * np.mean(residual ** 2, axis=1)
+        g = np.concatenate([(gx * residual) @ monomials, (gy * residual) @ monomials],
+                           axis=1)[:, 3 * _GRAD_OF + _MONOMIAL_OF]
+        step = (h_inv @ g[..., None].astype(float))[..., 0]
+        # W(x) ← W(W_step⁻¹(x)), W_step(x) = step[:2] + (I + step[2:]) x
+        warps = warps @ np.linalg.inv(np.eye(2) + step[:, 2:].reshape(n, 2, 2))
+        centres = centres - (warps @ step[:, :2, None])[..., 0]
+    ncc = 1.0 - 0.5 * np.mean(residual ** 2, axis=1)  # at the last step's start
     return centres, warps, ncc
 
 
@@ -513,9 +544,11 @@ class _Tracks:
     anchor_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # xy at anchor
     kf_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # xy at last keyframe
     # The track's template (grey values normalised to zero mean and unit σ, sampled around
-    # the track when it got it) and the affine warp from template to image pixels now
-    # (NaN: no template yet, or an external front end).
+    # the track when it got it, with a one-pixel border: ``take_templates``), its inverse
+    # normal matrix, and the affine warp from template to image pixels now (NaN: no template
+    # yet, or an external front end).
     template: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0), np.float32))
+    h_inv: np.ndarray = field(default_factory=lambda: np.zeros((0, 6, 6)))
     warp: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
 
     def __len__(self) -> int:
@@ -523,7 +556,7 @@ class _Tracks:
 
     def _columns(self) -> tuple[np.ndarray, ...]:
         return (self.id, self.uv, self.xy, self.anchor_kf, self.anchor_xy, self.kf_xy,
-                self.template, self.warp)
+                self.template, self.h_inv, self.warp)
 
     def select(self, index: np.ndarray) -> _Tracks:
         return _Tracks(*(a[index] for a in self._columns()))
@@ -709,10 +742,9 @@ class VisualOdometry:
         if len(rows) == 0:
             return uv, ok
         uv, ok = uv.copy(), ok.copy()
-        stack = cv2.merge([image, cv2.Scharr(image, cv2.CV_32F, 1, 0, scale=1 / 32),
-                           cv2.Scharr(image, cv2.CV_32F, 0, 1, scale=1 / 32)])
-        centre, warp, ncc = align_affine(stack, tr.template[rows], uv[rows].astype(float),
-                                         tr.warp[rows], p.template_iterations)
+        centre, warp, ncc = align_affine(image, tr.template[rows], tr.h_inv[rows],
+                                         uv[rows].astype(float), tr.warp[rows],
+                                         p.template_iterations)
         stretch = np.linalg.svd(warp, compute_uv=False)
         good = ((ncc >= p.template_min_ncc)
                 & (np.linalg.norm(centre - uv[rows], axis=1) <= p.template_max_shift_px)
@@ -732,10 +764,9 @@ class VisualOdometry:
         renew = ((stretch[:, 0] > p.template_max_stretch)
                  | (stretch[:, 1] < 1.0 / p.template_max_stretch))
         if renew.any():
-            eye = np.broadcast_to(np.eye(2), (int(renew.sum()), 2, 2))
-            tr.template[renew] = normalised(sample_patches(image, tr.uv[renew].astype(float), eye,
-                                                           p.template_half_px))
-            tr.warp[renew] = eye
+            tr.template[renew], tr.h_inv[renew] = take_templates(
+                image, tr.uv[renew].astype(float), p.template_half_px)
+            tr.warp[renew] = np.eye(2)
 
     def _detect(self, gray: np.ndarray, n_wanted: int) -> tuple[np.ndarray, np.ndarray]:
         """New ORB corners, the strongest per cell of ``min_feature_distance_px``, none in a cell
@@ -777,11 +808,12 @@ class VisualOdometry:
         if len(ids) == 0:
             return
         xy = self._undistort(uv)
-        side = 2 * self.params.template_half_px + 1
+        side = 2 * self.params.template_half_px + 3  # with the border
         self._tracks = self._tracks.extend(_Tracks(
             np.asarray(ids, np.int64), np.asarray(uv, np.float32).reshape(-1, 2), xy,
             np.full(len(ids), anchor_kf, np.int64), xy.copy(), xy.copy(),
-            np.zeros((len(ids), side, side), np.float32), np.full((len(ids), 2, 2), np.nan)))
+            np.zeros((len(ids), side, side), np.float32), np.zeros((len(ids), 6, 6)),
+            np.full((len(ids), 2, 2), np.nan)))
 
     # ------------------------------------------------------------------------- back end
 
