@@ -162,6 +162,10 @@ class Ins:
         self._omega = np.zeros(3)  # previous calibrated sample
         self._f = np.zeros(3)
         self._steps = 0
+        # The attitude integrated from the calibrated gyro alone, never corrected by the EKF:
+        # its rotations over seconds check the VO's (``vo_coupling.VoConsistency``) without
+        # the corrections the VO itself feeds in.
+        self.C_gyro = self._state.C_body_to_level.copy()
 
     @property
     def state(self) -> InsState:
@@ -235,10 +239,13 @@ class Ins:
         v1 = v0 + dv_f + (g - 2.0 * _cross(self.omega_ie, v_mid)) * dt
         s.position_ned = r0 + 0.5 * dt * (v0 + v1)
         s.velocity_ned = v1
-        C1 = self._earth_rotation(dt) @ C0 @ rotvec_to_dcm(w_coning * dt)
+        dC = rotvec_to_dcm(w_coning * dt)
+        C1 = self._earth_rotation(dt) @ C0 @ dC
+        self.C_gyro = self._earth_rotation(dt) @ self.C_gyro @ dC
         self._steps += 1
         if self._steps % _ORTHONORMALIZE_EVERY == 0:
             C1 = orthonormalize(C1)
+            self.C_gyro = orthonormalize(self.C_gyro)
         s.C_body_to_level = C1
         s.time = float(t)
         self._omega, self._f = omega, f

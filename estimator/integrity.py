@@ -42,9 +42,11 @@ MODES = ("fused", "coasting", "aligning", "no position")
 USABLE_MODES = ("fused", "coasting")
 
 # Faults that make the output untrusted while they are active (the others are warnings: the
-# fusion works around them, e.g. a receiver silent while three others track).
+# fusion works around them, e.g. a receiver silent while three others track; an inconsistent
+# VO is excluded and the attitude σ widened by what it may have pulled, so the protection
+# levels say what is left).
 CRITICAL = frozenset({"imu-silent", "imu-implausible", "imu-frozen", "time-backwards",
-                      "sd-inconsistent", "vo-inconsistent"})
+                      "sd-inconsistent"})
 
 
 @dataclass

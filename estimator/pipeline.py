@@ -120,7 +120,7 @@ class Fusion:
                                    opt.common_clock)
         self.carrier: CarrierPhaseCoupling | None = None  # once the INS runs
         self.coupling = VoCoupling(calibration.camera, opt.landmarks if opt.use_vo else None,
-                                   opt.body_origin_height_m)
+                                   opt.body_origin_height_m, self.monitor)
         if self.vo is None:
             self.coupling.status = "off"
 
@@ -244,6 +244,8 @@ class Fusion:
         else:
             phase = "degraded"
         vo_status = self.coupling.status
+        if vo_status == "tracking" and self.coupling.excluded:
+            vo_status = "excluded"  # tracking, but its rotation disagrees with the gyro's
         scale = None
         converged = False
         if ekf is not None and ekf.vo is not None and vo_status == "tracking":

@@ -9,18 +9,29 @@ Every tracked frame also feeds the landmark EKFs (``estimator.landmarks``, seed 
 point seen is one EKF in L, seeded from its mapped VO point and updated with its pixel and the
 fused camera pose and covariance; ``structure`` gives the refined point once it is reportable
 (``structure(refined=False)``: the raw points).
+
+The VO's rotation is checked against the gyro's at every tracked frame (``VoConsistency``):
+a VO whose rotation runs away from the gyro's faster than the EKF's own model of its drift
+allows (a map built on a wrong two-view geometry, rotation traded against sideways
+translation) would drag the fused heading with it. It is then excluded — declared
+("vo-inconsistent"), its segment dropped from the EKF, the attitude σ widened by what it may
+have pulled — and mapped afresh once its rotation has agreed with the gyro's again for the
+longest window.
 """
 
 from __future__ import annotations
 
+import math
 import time as _time
+from collections import deque
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from .ekf import ErrorStateEkf
+from .ekf import EkfConfig, ErrorStateEkf, chi2_gate
+from .integrity import IntegrityMonitor
 from .landmarks import LandmarkMap, LandmarkParams, SolvedViews, camera_pose_covariance
 from .records import CameraCalibration
 from .vo import VoOutput
@@ -28,14 +39,125 @@ from .vo import VoOutput
 VO_START_BASELINE = 0.3  # VO units moved since the anchor frame before a segment is mapped
 VO_START_METRES = 0.3  # ... and metres (a sensible first scale from the INS)
 VO_START_SCALE_SIGMA = 0.3  # relative σ of that first scale
+# The VO's rotation is compared with the gyro's over these spans: a fast runaway shows in the
+# short one, a slow steady one in the long one.
+VO_CHECK_WINDOWS_S = (1.0, 2.0, 5.0)
+# A VO found inconsistent may have pulled the fused attitude by as much as it disagrees, but
+# no more than this (a direction of travel tens of degrees off moves the heading degrees).
+MAX_PULL_DEG = 3.0
+
+
+@dataclass(frozen=True)
+class VoDisagreement:
+    """The worst window of a VO that disagrees with the gyro or the fused track."""
+
+    what: str  # "rotation" | "direction of travel"
+    angle_rad: float  # between the VO's and the gyro's rotation / the fused displacement
+    window_s: float
+    nis: float  # the disagreement² over the variance the EKF's VO model allows
+
+
+@dataclass(frozen=True)
+class _Seen:
+    t: float
+    segment: int
+    C_world_to_camera: np.ndarray
+    camera_position_world: np.ndarray  # VO units
+    C_gyro: np.ndarray  # ``Ins.C_gyro``
+    C_level_to_camera: np.ndarray  # fused
+    camera_position_ned: np.ndarray  # fused
+    attitude_sigma: float  # fused, rad (largest axis)
+
+
+MIN_TRAVEL_M = 1.0  # the direction of travel is checked over windows with this much of it
+
+
+class VoConsistency:
+    """The VO against what it cannot outvote, over ``VO_CHECK_WINDOWS_S``:
+
+    - its rotation against the gyro's (``Ins.C_gyro``: integrated without the EKF's
+      corrections, so without what the VO itself fed in);
+    - its direction of travel (in the camera frame at the window's start) against the fused
+      displacement (carrier phase: millimetres) seen through the fused attitude. A map built
+      on a wrong two-view geometry (rotation traded against sideways translation) keeps the
+      gyro's rotation and travels tens of degrees off; mapped into L, it drags the heading.
+
+    A window disagrees beyond the χ² gate of the variance the EKF's VO model allows over it:
+    the VO world's rotation drift (``vo_attitude_psd`` per second, ``vo_attitude_per_m`` per
+    metre), its origin's drift and position noise across the travel, and the fused
+    attitude's σ."""
+
+    def __init__(self, cfg: EkfConfig, C_camera_to_body: np.ndarray) -> None:
+        self.cfg = cfg
+        self.C_cb = np.asarray(C_camera_to_body, float)
+        self.gates = {"rotation": chi2_gate(3, cfg.gate_probability),
+                      "direction of travel": chi2_gate(2, cfg.gate_probability)}
+        self._seen: deque[_Seen] = deque()
+
+    def check(self, now: _Seen) -> VoDisagreement | None:
+        """Add a tracked frame; the worst disagreeing window ending at it, None if none."""
+        seen = self._seen
+        if seen and (seen[-1].segment != now.segment or now.t < seen[-1].t):
+            seen.clear()  # another VO world (or time went back): nothing to compare with
+        seen.append(now)
+        longest = max(VO_CHECK_WINDOWS_S)
+        while len(seen) > 1 and now.t - seen[1].t >= longest:
+            seen.popleft()
+        worst = None
+        for window in VO_CHECK_WINDOWS_S:
+            old = next((e for e in reversed(seen) if now.t - e.t >= window - 1e-6), None)
+            if old is None:
+                continue
+            for found in (self._rotation(old, now), self._direction(old, now)):
+                if found is not None and found.nis > self.gates[found.what] and \
+                        (worst is None or found.nis > worst.nis):
+                    worst = found
+        return worst
+
+    def _rotation(self, old: _Seen, now: _Seen) -> VoDisagreement:
+        cfg = self.cfg
+        # camera at the start → camera now: by the VO, and by the gyro through the mounting
+        R_vo = now.C_world_to_camera @ old.C_world_to_camera.T
+        R_gyro = self.C_cb.T @ now.C_gyro.T @ old.C_gyro @ self.C_cb
+        angle = _angle(R_vo @ R_gyro.T)
+        travel = float(np.linalg.norm(now.camera_position_ned - old.camera_position_ned))
+        var = cfg.vo_attitude_psd * (now.t - old.t) + cfg.vo_attitude_per_m * travel
+        return VoDisagreement("rotation", angle, now.t - old.t, angle**2 / var)
+
+    def _direction(self, old: _Seen, now: _Seen) -> VoDisagreement | None:
+        cfg = self.cfg
+        fused = old.C_level_to_camera @ (now.camera_position_ned - old.camera_position_ned)
+        travel = float(np.linalg.norm(fused))
+        vo = old.C_world_to_camera @ (now.camera_position_world - old.camera_position_world)
+        if travel < MIN_TRAVEL_M or not np.linalg.norm(vo) > 0.0:
+            return None
+        u = vo / np.linalg.norm(vo)
+        across = float(np.linalg.norm(fused - (fused @ u) * u))  # m, off the VO's direction
+        var = (cfg.vo_drift_psd * (now.t - old.t) + cfg.vo_drift_per_m * travel
+               + 2.0 * cfg.vo_position_sigma**2 + (cfg.vo_position_relative * travel) ** 2
+               + (old.attitude_sigma * travel) ** 2)
+        return VoDisagreement("direction of travel", math.asin(min(1.0, across / travel)),
+                              now.t - old.t, across**2 / var)
+
+    def consistent_for(self, t: float) -> float:
+        """How long (s) the checked frames of this segment span up to ``t``."""
+        return t - self._seen[0].t if self._seen else 0.0
+
+
+def _angle(R: np.ndarray) -> float:
+    """Rotation angle (rad) of a rotation matrix."""
+    return math.acos(max(-1.0, min(1.0, 0.5 * (float(np.trace(R)) - 1.0))))
 
 
 class VoCoupling:
     """VO segments mapped into L, their EKF updates, and the port structure."""
 
     def __init__(self, camera: CameraCalibration, landmarks: LandmarkParams | None,
-                 water_down_m: float | None) -> None:
+                 water_down_m: float | None, monitor: IntegrityMonitor | None = None) -> None:
         self.status = "initialising"  # the VO's last status
+        self.monitor = monitor
+        self.consistency: VoConsistency | None = None  # made with the EKF (its VO model)
+        self.excluded_since: float | None = None  # gpst of the last disagreement while excluded
         self._anchor: tuple[int, np.ndarray, np.ndarray] | None = None  # segment, p_W, r_cam
         self._points: dict[int, tuple[int, np.ndarray]] = {}  # id → (segment, X_W)
         self.frozen: dict[int, np.ndarray] = {}  # id → L point of ended segments
@@ -60,6 +182,8 @@ class VoCoupling:
                 self.freeze_segment(ekf)
                 self._anchor = None
             return
+        if not self._consistent(out, ekf):
+            return
         for pid, X in zip(out.point_ids, out.points_world, strict=True):
             self._points[int(pid)] = (out.segment, np.asarray(X, float))
         p = np.asarray(out.camera_position_world, float)
@@ -71,6 +195,54 @@ class VoCoupling:
             t0 = _time.perf_counter()
             self._refine_landmarks(out, ekf)
             timed("landmarks", _time.perf_counter() - t0)
+
+    @property
+    def excluded(self) -> bool:
+        return self.excluded_since is not None
+
+    def _consistent(self, out: VoOutput, ekf: ErrorStateEkf) -> bool:
+        """Check the VO's rotation against the gyro's (module docstring): False while it is
+        excluded."""
+        if self.consistency is None:
+            self.consistency = VoConsistency(ekf.cfg, ekf.C_camera_to_body)
+        t = float(out.time)
+        ekf.flush()
+        C_bl = ekf.nominal.C_body_to_level
+        bad = self.consistency.check(_Seen(
+            t, out.segment, np.asarray(out.C_world_to_camera, float),
+            np.asarray(out.camera_position_world, float), ekf.ins.C_gyro.copy(),
+            (C_bl @ ekf.C_camera_to_body).T, ekf.camera_position(),
+            math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0))))
+        if bad is not None:
+            if not self.excluded:
+                # What it may have pulled the attitude by: widen the attitude σ so much.
+                ekf.inflate(0.0, 0.0, min(bad.angle_rad, math.radians(MAX_PULL_DEG)))
+                self._drop_segment(ekf)
+                if self.monitor is not None:
+                    self.monitor.raise_fault(
+                        "vo-inconsistent", t, f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}°"
+                        f" off over {bad.window_s:.0f} s: VO excluded")
+            self.excluded_since = t
+            return False
+        if not self.excluded:
+            return True
+        if self.consistency.consistent_for(t) < max(VO_CHECK_WINDOWS_S) \
+                or t - self.excluded_since < max(VO_CHECK_WINDOWS_S):
+            return False
+        self.excluded_since = None
+        if self.monitor is not None:
+            self.monitor.clear("vo-inconsistent", t, "VO agrees with the gyro and the fused "
+                               "track again: mapped afresh")
+        return True
+
+    def _drop_segment(self, ekf: ErrorStateEkf) -> None:
+        """Forget the current VO segment's mapping and raw points (not frozen: its geometry
+        is wrong); the landmarks, refined from the fused poses, stay."""
+        if ekf.vo is not None:
+            seg = ekf.vo.segment
+            self._points = {k: v for k, v in self._points.items() if v[0] != seg}
+            ekf.vo = None
+        self._anchor = None
 
     def _start_segment(self, out: VoOutput, p: np.ndarray, ekf: ErrorStateEkf) -> None:
         """A new VO world: anchored at its first tracked frame, mapped into L once the camera

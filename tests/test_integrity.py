@@ -5,6 +5,7 @@ through the engine path the server and the report use (engine.driver via evaluat
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -80,7 +81,7 @@ def test_protection_level_and_trust() -> None:
     assert not wide.trusted and "alert limit" in wide.reasons[0]
     assert not m.assess(1.0, "aligning", cov, 1e-8).trusted
     assert m.assess(1.0, "coasting", cov, 1e-8).trusted
-    m.raise_fault("vo-inconsistent", 1.0, "VO scale off")
+    m.raise_fault("sd-inconsistent", 1.0, "single differences off the attitude")
     assert not m.assess(1.0, "fused", cov, 1e-8).trusted
 
 
@@ -216,3 +217,49 @@ def test_the_undamaged_recording_raises_nothing(sim_recording: Path, clean_vo: V
     assert not [a for a in ig.alerts if a.active], ig.alerts
     assert ig.misleading_epochs == 0 and ig.available_fraction > 0.9
     assert ig.worst_error_to_protection < 1.0
+
+
+def _bent(vo: VoPass, start_gpst: float, bend_deg: float) -> VoPass:
+    """The VO's travel turned by ``bend_deg`` about its world's vertical from ``start_gpst`` on,
+    its rotations left as they are: a map built on a wrong two-view geometry, which keeps the
+    gyro's rotation and travels off to one side."""
+    a = math.radians(bend_deg)
+    R = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0],
+                  [-math.sin(a), 0.0, math.cos(a)]])
+    outs, pivot = [], {}
+    for o in vo.outputs:
+        if o.time >= start_gpst and o.camera_position_world is not None:
+            p = np.asarray(o.camera_position_world, float)
+            p0 = pivot.setdefault(o.segment, p)
+            o = dataclasses.replace(o, camera_position_world=p0 + R @ (p - p0))
+        outs.append(o)
+    return VoPass(outs, vo.vo_ms, vo.decode_ms)
+
+
+def test_a_vo_travelling_off_its_direction_is_excluded(sim_recording: Path, clean_vo: VoPass,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """A VO whose direction of travel turns 20° off at 6 s (its rotation still the gyro's):
+    declared "vo-inconsistent" once the ship has travelled the metre a direction needs (the
+    boat makes ~1 m/s) and excluded, the fused heading kept by the GNSS compass, never
+    misleading. Without the check the same VO drags the heading away."""
+    rec = load(sim_recording)
+    start = rec.manifest.start_gpst
+    end = start + rec.manifest.duration_s + 1e-9
+    vo = _bent(clean_vo, start + 6.0, 20.0)
+    options = FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m, **OPTIONS)
+    clean = fuse(rec, clean_vo, options, "clean", end)
+    run = fuse(rec, vo, options, "bent", end)
+    ig = integrity_scores(rec, run, start + 3.0, start + rec.manifest.duration_s)
+    first = [a.t for a in ig.alerts if a.kind == "vo-inconsistent" and a.active]
+    assert first and 6.0 <= first[0] <= 8.0, ig.alerts
+    assert ig.misleading_epochs == 0 and ig.available_fraction > 0.5, ig
+
+    def heading_error_deg(r: object) -> float:
+        ref = rec.reference.interpolate(r.time)[2][:, 2]  # type: ignore[union-attr, attr-defined]
+        e = np.degrees(np.angle(np.exp(1j * (r.euler[:, 2] - ref))))  # type: ignore[attr-defined]
+        return float(np.nanmax(np.abs(e[r.time >= start + 6.0])))  # type: ignore[attr-defined]
+
+    assert heading_error_deg(run) < heading_error_deg(clean) + 0.1
+    monkeypatch.setattr("estimator.vo_coupling.VoConsistency.check", lambda _self, _now: None)
+    unchecked = fuse(rec, vo, options, "unchecked", end)
+    assert heading_error_deg(unchecked) > heading_error_deg(clean) + 0.5

@@ -37,6 +37,9 @@ export function assess(frame) {
   }
   if (st.phase === "degraded") advisories.push("Coasting — no carrier-phase velocity, position drifting");
   if (st.vo_status === "lost") advisories.push("Visual odometry lost — 3-D points not updated");
+  else if (st.vo_status === "excluded") {
+    advisories.push("Visual odometry excluded (disagrees with the gyro or the GNSS track) — 3-D points not updated");
+  }
   else if (st.vo_status === "tracking" && !st.scale_converged) {
     advisories.push("VO scale converging — point distances provisional");
   }
