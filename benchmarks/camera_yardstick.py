@@ -3,6 +3,7 @@ set of simulated seeds chosen before looking.
 
     .venv/bin/python benchmarks/camera_yardstick.py [--small 101-120] [--large 201-205]
         [--cache DIR] [--end 90] [--jobs 2] [--json OUT.json] [--seeds small-boat:103 ...]
+        [--recordings DIR ...] [--no-targets]
 
 Each seed is simulated once into ``--cache`` (default ``~/.cache/berthing-aid/yardstick``,
 outside the repository; reused when present) and evaluated with the replay report's own
@@ -15,7 +16,11 @@ functions (``evaluation.report.evaluate``), trimmed to what the issue's targets 
   at the end (rendered true depth at each landmark's last view);
 - the designated targets on the server's path (``FollowedTarget``, no ablations): the share
   of tracked frames whose distance is within tolerance (max(0.1 m, 1 %)) and within 2σ;
-- the VO's cost per frame (ms).
+- the VO's cost per frame (ms), and how often the main fusion found it inconsistent with the
+  gyro or the fused track and excluded it (``estimator.vo_coupling.VoConsistency``).
+
+``--recordings`` evaluates recordings as they are instead (e.g. the campaign's, to compare two
+versions of the code on the same videos); ``--no-targets`` leaves the designated targets out.
 
 The replay is cut at ``--end`` s (default 90: the 30 s initialisation + the 60 s window of
 the targets; the small-boat scenario lasts 90 s anyway, the large ship 120 s). Two seeds run
@@ -62,6 +67,7 @@ FIGURES = (
     ("target_frames", "tgt n", "high", None, None, "{:.0f}"),
     ("vo_tracking", "VO trk", "high", None, None, "{:.2f}"),
     ("vo_segments", "segs", "low", None, None, "{:.0f}"),
+    ("vo_exclusions", "VO excl", "low", None, None, "{:.0f}"),
     ("vo_ms", "VO ms", "low", None, None, "{:.1f}"),
 )
 
@@ -112,21 +118,24 @@ def ensure_recording(cache: Path, scenario: str, seed: int, version: str) -> Pat
     return out
 
 
-def evaluate_seed(cache: str, scenario: str, seed: int, end_s: float, version: str) -> dict:
-    """Simulate (if needed) and evaluate one seed: the figures of ``FIGURES``."""
+def evaluate_seed(cache: str | None, scenario: str, seed: int | str, end_s: float,
+                  version: str, targets: bool = True) -> dict:
+    """Simulate (if needed) and evaluate one seed: the figures of ``FIGURES``. Without a
+    ``cache``, ``seed`` is the directory of a recording to evaluate as it is."""
     from evaluation.records import to_json
     from evaluation.report import MAIN, ReportOptions, evaluate
     from evaluation.tracking import DESIGNATED
     from recordings.format import load
 
     t_start = time.perf_counter()
-    path = ensure_recording(Path(cache), scenario, seed, version)
+    path = Path(str(seed)) if cache is None else \
+        ensure_recording(Path(cache), scenario, int(seed), version)
     t_sim = time.perf_counter() - t_start
     rec = load(path)
     end = min(end_s, float(rec.manifest.duration_s))
     opt = ReportOptions(end_s=end, methods=("VO", "INS+VO", MAIN), subset_sizes=(),
                         clock_drift=False, single_satellites=0, without_cpp=False,
-                        tracking=True, tracking_methods=(DESIGNATED,))
+                        tracking=targets, tracking_methods=(DESIGNATED,))
     ev = evaluate(rec, opt, lambda _text: None)
     rep = ev.report
     row: dict = {"scenario": scenario, "seed": seed, "end_s": end,
@@ -154,6 +163,9 @@ def evaluate_seed(cache: str, scenario: str, seed: int, end_s: float, version: s
     outs = ev.rs.vo.outputs
     row["vo_tracking"] = float(np.mean([o.status == "tracking" for o in outs]))
     row["vo_segments"] = len({o.segment for o in outs if o.status == "tracking"})
+    # times the main fusion found the VO inconsistent and excluded it (VoConsistency)
+    row["vo_exclusions"] = sum(a.kind == "vo-inconsistent" and a.active
+                               for a in ev.runs[MAIN].alerts)
     row["vo_ms"] = rep.timing_ms.get("vo") if rep.timing_ms else None
     row["report"] = to_json(rep)
     return row
@@ -191,7 +203,8 @@ def format_table(rows: list[dict], summ: dict[str, dict]) -> str:
                                                                            strict=True))
     lines = [head, "-" * len(head)]
     for r in rows:
-        name = f"{r['scenario'][:5]} {r['seed']}"
+        name = r["scenario"][:16] if isinstance(r["seed"], str) else \
+            f"{r['scenario'][:5]} {r['seed']}"
         if "error" in r:
             lines.append(f"{name:<16} ERROR {r['error'].splitlines()[-1]}")
             continue
@@ -225,13 +238,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--large", default="201-205", help="large-ship seeds (e.g. 201-205)")
     ap.add_argument("--seeds", nargs="*", default=None, metavar="SCENARIO:SEED",
                     help="explicit seeds instead (e.g. small-boat:103 large-ship:201)")
+    ap.add_argument("--recordings", nargs="*", type=Path, default=None, metavar="DIR",
+                    help="recordings to evaluate as they are, instead of simulated seeds")
+    ap.add_argument("--no-targets", action="store_true",
+                    help="leave out the designated targets (about half the time)")
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE,
                     help=f"simulated recordings (default {DEFAULT_CACHE})")
     ap.add_argument("--end", type=float, default=90.0, help="replay the first S s (default 90)")
     ap.add_argument("--jobs", type=int, default=2, help="processes (at most 2)")
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
     args = ap.parse_args(argv)
-    if args.seeds:
+    if args.recordings:
+        jobs = [(p.name, str(p)) for p in args.recordings]
+    elif args.seeds:
         jobs = [(s.split(":")[0], int(s.split(":")[1])) for s in args.seeds]
     else:
         jobs = [("small-boat", k) for k in parse_range(args.small)] + \
@@ -240,8 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     version = sim_version()
     rows: list[dict] = []
     with ProcessPoolExecutor(max_workers=max(1, min(args.jobs, 2))) as pool:
-        futures = {pool.submit(evaluate_seed, str(args.cache), sc, seed, args.end, version):
-                   (sc, seed) for sc, seed in jobs}
+        cache = None if args.recordings else str(args.cache)
+        futures = {pool.submit(evaluate_seed, cache, sc, seed, args.end, version,
+                               not args.no_targets): (sc, seed) for sc, seed in jobs}
         bar = tqdm(as_completed(futures), total=len(futures), unit="seed", file=sys.stderr)
         for fut in bar:
             sc, seed = futures[fut]
@@ -250,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
             except Exception:  # noqa: BLE001 - one seed's failure is a result too
                 rows.append({"scenario": sc, "seed": seed, "error": traceback.format_exc()})
             bar.set_postfix_str(f"{sc} {seed} done")
-    rows.sort(key=lambda r: (r["scenario"] != "small-boat", r["seed"]))
+    rows.sort(key=lambda r: (r["scenario"] != "small-boat", str(r["seed"])))
     summ = summary([r for r in rows if "error" not in r])
     print(format_table(rows, summ))
     if args.json is not None:
