@@ -453,21 +453,20 @@ class ViewWindow:
 
 
 class _Groups:
-    """Sums of per-observation values by group (landmark or view), via one sort."""
+    """Sums of per-observation values by group (landmark or view)."""
 
     def __init__(self, group: np.ndarray, n: int) -> None:
-        self.order = np.argsort(group, kind="stable")
-        counts = np.bincount(group, minlength=n)
-        self.starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        self.empty = counts == 0
+        self.group = np.asarray(group, np.intp)
+        self.n = int(n)
 
     def sum(self, values: np.ndarray) -> np.ndarray:
-        # A zero row after the last one: a last group with nothing in it starts there (one
-        # past the end, which ``reduceat`` refuses: a view whose points all left the window).
-        pad = np.zeros((1, *values.shape[1:]), values.dtype)
-        out = np.add.reduceat(np.concatenate([values[self.order], pad]), self.starts, axis=0)
-        out[self.empty] = 0.0
-        return out
+        # One bincount per component: a single pass each, no sorting or copying of the rows.
+        values = np.asarray(values, float)
+        flat = values.reshape(len(values), int(np.prod(values.shape[1:])))
+        out = np.empty((self.n, flat.shape[1]))
+        for k in range(flat.shape[1]):
+            out[:, k] = np.bincount(self.group, weights=flat[:, k], minlength=self.n)
+        return out.reshape(self.n, *values.shape[1:])
 
 
 def _triangulate_rays(C: np.ndarray, centre: np.ndarray, view_of: np.ndarray,
@@ -501,14 +500,16 @@ def _solve_rotations(C: np.ndarray, prior: np.ndarray, prior_info: np.ndarray,
     z = np.maximum(xc[:, 2], 1e-6)
     h = xc[:, :2] / z[:, None]
     r = (xy - h) / sigma
-    Jc = np.zeros((len(xy), 2, 3))
-    Jc[:, 0, 0] = Jc[:, 1, 1] = 1.0 / z
-    Jc[:, :, 2] = -h / z[:, None]
-    J = -Jc @ _skew_batch(xc) / sigma
+    # The projection's Jacobian Jc (rows (1/z, 0, −h_x/z), (0, 1/z, −h_y/z)) times −[xc×]:
+    # row k is xc × Jc_k.
+    zero, inv_z = np.zeros_like(z), 1.0 / z
+    J0 = np.cross(xc, np.column_stack([inv_z, zero, -h[:, 0] * inv_z])) / sigma
+    J1 = np.cross(xc, np.column_stack([zero, inv_z, -h[:, 1] * inv_z])) / sigma
     w = 1.0 / np.maximum(1.0, np.linalg.norm(r, axis=1) * sigma * focal / huber_px)
     w[xc[:, 2] <= 0.3] = 0.0
-    H = by_view.sum(w[:, None, None] * np.einsum("nki,nkj->nij", J, J))
-    g = by_view.sum(w[:, None] * np.einsum("nki,nk->ni", J, r))
+    H = by_view.sum(w[:, None, None] * (J0[:, :, None] * J0[:, None, :]
+                                        + J1[:, :, None] * J1[:, None, :]))
+    g = by_view.sum(w[:, None] * (J0 * r[:, :1] + J1 * r[:, 1:]))
     # The prior pulls φ towards the (small) rotation from C to its fused value.
     D = prior @ C.transpose(0, 2, 1)
     to_prior = 0.5 * np.stack([D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0],

@@ -226,6 +226,7 @@ class VoCoupling:
             return False
         if not self.excluded:
             return True
+        self.excluded_since = min(self.excluded_since, t)  # (time went back: from now)
         if self.consistency.consistent_for(t) < max(VO_CHECK_WINDOWS_S) \
                 or t - self.excluded_since < max(VO_CHECK_WINDOWS_S):
             return False
