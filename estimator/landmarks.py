@@ -49,7 +49,7 @@ millisecond).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -364,6 +364,8 @@ class ViewWindow:
         self.params = params
         self.views: list[_View] = []
         self._last_solve = -math.inf
+        self._job: Iterator[None] | None = None  # the solve under way (``step``)
+        self._result: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def add(self, t: float, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
             attitude_cov: np.ndarray | None, ids: np.ndarray, xy: np.ndarray) -> None:
@@ -399,43 +401,72 @@ class ViewWindow:
     def due(self, t: float) -> bool:
         return t - self._last_solve >= self.params.solve_interval_s and len(self.views) >= 3
 
+    def step(self, t: float, priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """One frame's share of the solve: a solve is started when one is due and goes on by
+        one alternation per call, so that no frame carries all of it (a live frame has
+        100 ms). Returns ``solve``'s result at the call that finishes it, None otherwise.
+        The solve works on the views as they were when it started; the result arrives
+        ``JointParams.iterations`` calls later, always the same for a given recording."""
+        if self._job is None:
+            if not self.due(t):
+                return None
+            self._job = self._solve_steps(t, priors)
+        if next(self._job, StopIteration) is StopIteration:
+            self._job = None
+            return self._result
+        return None
+
     def solve(self, t: float, priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The whole solve at once (``step`` spreads it over frames)."""
+        for _ in self._solve_steps(t, priors):
+            pass
+        assert self._result is not None
+        return self._result
+
+    def _solve_steps(self, t: float,
+                     priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+                     ) -> Iterator[None]:
         """(ids, positions (N,3), covariances (N,3,3)) of the landmarks with
-        ``min_views`` views in the window, from the joint solution. ``priors(ids)``: each
+        ``min_views`` views in the window, from the joint solution, left in ``_result``;
+        yields after each alternation but the last. ``priors(ids)``: each
         landmark's prior (position, inverse covariance; zero where none) — the same the
         landmark EKF started from, so a point with little parallax in the window stays near
         it."""
         p = self.params
         self._last_solve = float(t)
-        empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)))
-        if len(self.views) < 3:
-            return empty
-        view_of = np.concatenate([np.full(len(v.ids), k) for k, v in enumerate(self.views)])
-        ids_all = np.concatenate([v.ids for v in self.views])
-        xy = np.concatenate([v.xy for v in self.views])
+        self._result = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+        views = list(self.views)  # as they are now: views come and go while it runs
+        if len(views) < 3:
+            return
+        view_of = np.concatenate([np.full(len(v.ids), k) for k, v in enumerate(views)])
+        ids_all = np.concatenate([v.ids for v in views])
+        xy = np.concatenate([v.xy for v in views])
         ids, point_of, counts = np.unique(ids_all, return_inverse=True, return_counts=True)
         keep = counts[point_of] >= p.min_views
         if not keep.any():
-            return empty
+            return
         ids, point_of = np.unique(ids_all[keep], return_inverse=True)
         view_of, xy = view_of[keep], xy[keep]
-        centre = np.array([v.camera_position_ned for v in self.views])
-        prior = np.array([v.C_level_to_camera for v in self.views])
-        prior_info = np.array([v.attitude_info for v in self.views])
+        centre = np.array([v.camera_position_ned for v in views])
+        prior = np.array([v.C_level_to_camera for v in views])
+        prior_info = np.array([v.attitude_info for v in views])
         by_point = _Groups(point_of, len(ids))
-        by_view = _Groups(view_of, len(self.views))
+        by_view = _Groups(view_of, len(views))
         # Warm start: the alternation converges slowly along the coupled directions (a
         # rotation of the views against a shift of the points), each solve goes on from the
         # last one's rotations.
-        C = np.array([v.C_solved for v in self.views])
+        C = np.array([v.C_solved for v in views])
         sigma = p.pixel_sigma_px / self.focal
         x_prior, info_prior = priors(ids)
         X = x_prior
         H = np.zeros((len(C), 3, 3))
         # A view's rotation is only as good as the landmarks it sees.
         few = np.bincount(view_of, minlength=len(C)) < p.min_view_landmarks
-        for _ in range(p.iterations):
+        for k in range(p.iterations):
+            if k:
+                yield
             X, _A = _triangulate_rays(C, centre, view_of, point_of, by_point, xy, X,
                                       1.0 / sigma**2, x_prior, info_prior)
             C, H = _solve_rotations(C, prior, prior_info, centre, X, view_of, point_of,
@@ -445,11 +476,11 @@ class ViewWindow:
         # Each ray's angular variance: the pixel noise plus what is left of its view's
         # rotation uncertainty (small with many landmarks, the fused one with few).
         rotation_var = np.trace(np.linalg.inv(H), axis1=1, axis2=2) / 3.0
-        for v, c, var in zip(self.views, C, rotation_var, strict=True):
+        for v, c, var in zip(views, C, rotation_var, strict=True):
             v.C_solved, v.rotation_var = c, float(var)
         X, A = _triangulate_rays(C, centre, view_of, point_of, by_point, xy, X,
                                  1.0 / (sigma**2 + rotation_var[view_of]), x_prior, info_prior)
-        return ids, X, np.linalg.inv(A + 1e-9 * np.eye(3))
+        self._result = (ids, X, np.linalg.inv(A + 1e-9 * np.eye(3)))
 
 
 class _Groups:
@@ -640,11 +671,14 @@ class LandmarkMap:
     # ------------------------------------------------------------------------ update
 
     def update(self, t: float, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
-               pose_cov: np.ndarray | None, ids: np.ndarray, xy: np.ndarray) -> LandmarkUpdate:
+               pose_cov: np.ndarray | None, ids: np.ndarray, xy: np.ndarray,
+               busy: bool = False) -> LandmarkUpdate:
         """One view: landmarks ``ids`` seen at undistorted normalised image coordinates ``xy``
         (N,2) by the camera at ``camera_position_ned`` with attitude ``C_level_to_camera``.
         ``pose_cov``: 6x6 covariance of (camera position, attitude small angles in L)
-        (``camera_pose_covariance``), None for an exactly known pose."""
+        (``camera_pose_covariance``), None for an exactly known pose. ``busy``: this frame
+        already carries a heavy step (the VO's keyframe bundle adjustment): the joint
+        window's solve waits for the next one."""
         ids = np.asarray(ids, np.int64).reshape(-1)
         xy = np.asarray(xy, float).reshape(-1, 2)
         rows = self.lookup(ids)
@@ -683,7 +717,7 @@ class LandmarkMap:
         self.stats["gated"] += out.gated
         self.stats["dropped"] += out.dropped
         if self.window is not None:
-            self._to_window(t, C, p, pose_cov, rows, z_meas)
+            self._to_window(t, C, p, pose_cov, rows, z_meas, busy)
         return out
 
     def _filter(self, rows: np.ndarray, z_meas: np.ndarray, C: np.ndarray, p: np.ndarray,
@@ -734,14 +768,15 @@ class LandmarkMap:
         return x, 0.5 * (P_new + P_new.transpose(0, 2, 1)), d2, front
 
     def _to_window(self, t: float, C: np.ndarray, p: np.ndarray, pose_cov: np.ndarray | None,
-                   rows: np.ndarray, z_meas: np.ndarray) -> None:
+                   rows: np.ndarray, z_meas: np.ndarray, busy: bool) -> None:
         """The view (of the landmarks still alive) into the joint window; its solution, when
         one is due, becomes the landmarks' joint estimates."""
         live = self.alive[rows]
         att = None if pose_cov is None else np.asarray(pose_cov, float)[3:, 3:]
         self.window.add(t, C, p, att, self.ids[rows[live]], z_meas[live])
-        if self.window.due(t):
-            j_ids, X, P = self.window.solve(t, self._seed_prior)
+        solved = None if busy else self.window.step(t, self._seed_prior)
+        if solved is not None:
+            j_ids, X, P = solved
             j_rows = self.lookup(j_ids)
             have = j_rows >= 0
             self.x_joint[j_rows[have]] = X[have]

@@ -293,7 +293,7 @@ class VoCoupling:
                                   ekf.vo_point_sigma(Xw), time=out.time)
         pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
         xy = cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
-        lm.update(out.time, C_lc, p_cam, pose_cov, ids, xy)
+        lm.update(out.time, C_lc, p_cam, pose_cov, ids, xy, busy=out.is_keyframe)
 
     def freeze_segment(self, ekf: ErrorStateEkf | None) -> None:
         """Keep the points of an ended VO segment in L as they were last mapped."""
