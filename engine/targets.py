@@ -32,6 +32,9 @@ from .camera import CameraPose, Projector, camera_pose, water_plane_point
 
 TARGET_REFRESH_S = 1.0  # a target is refreshed on the port structure at most this often
 TARGET_WINDOW_PX = 31  # template side of the image tracker at 960 px of image width
+# What stands on the water up to a quay's top (its face, fenders, moored hulls): a click the
+# port structure does not place may be on any of it, nearer than where its ray meets the water.
+WATER_PLANE_STANDING_M = 3.0
 
 
 class DesignationError(ValueError):
@@ -105,7 +108,11 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
             f"pixel ({u:g}, {v:g}) has no port-structure point within "
             f"{2 * DESIGNATION_RADIUS_PX:g} px and its ray does not meet the water plane "
             "(above the horizon, or the water level is unknown)")
-    _, cov = point_on_ray(hit[None], None, pose.position_ned, ray, focal)
+    # 2σ along the ray reaches back to where it is WATER_PLANE_STANDING_M above the water.
+    height = float(water_down_m) - float(pose.position_ned[2])  # type: ignore[arg-type]
+    fraction = max(0.1, 0.5 * min(WATER_PLANE_STANDING_M, height) / height)
+    _, cov = point_on_ray(hit[None], None, pose.position_ned, ray, focal,
+                          ray_sigma_fraction=fraction)
     return Designation(hit, cov, "water-plane", np.zeros(0, np.int64), None)
 
 

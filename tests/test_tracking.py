@@ -620,3 +620,30 @@ def test_a_common_attitude_error_moves_the_triangulated_point():
     moved, _, _ = triangulate_point(turned, centres, xy, var, *prior)
     assert used.all() and np.linalg.norm(moved - est) > 0.02
     np.testing.assert_allclose(J @ e, moved - est, atol=0.1 * np.linalg.norm(moved - est))
+
+
+def test_water_plane_designation_reaches_what_stands_on_the_water():
+    """A click the port structure does not place falls back to where its ray meets the water.
+    What the officer clicked may stand on the water (a fender, the quay face, a moored hull)
+    up to ``WATER_PLANE_STANDING_M`` above it, nearer along the ray: the distance's 2σ reaches
+    that far (seeds 112 and 113 had fenders designated 7–23 m beyond them with 2σ of 3–5 m)."""
+    from engine.camera import CameraPose, Projector
+    from engine.targets import WATER_PLANE_STANDING_M, Structure, designate
+
+    cam = camera_calibration(SMALL_BOAT)
+    projector = Projector(cam)
+    C_level_to_camera = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # north
+    for height in (2.0, 12.0):  # camera above the water: a small boat, a large ship's bridge
+        view = CameraView(0.0, C_level_to_camera, np.array([0.0, 0.0, -height]), None)
+        u, v = 0.5 * cam.width, 0.5 * cam.height + 60.0  # below the horizon
+        des = designate(projector, view, u, v, Structure(None), 0.0)
+        assert des.method == "water-plane"
+        ray = projector.pixel_ray(CameraPose(C_level_to_camera, view.position_ned), u, v)
+        ray = ray / np.linalg.norm(ray)
+        r_water = float(np.linalg.norm(des.position_ned - view.position_ned))
+        assert des.position_ned[2] == pytest.approx(0.0, abs=1e-9)
+        sigma = math.sqrt(ray @ des.covariance @ ray)
+        standing = min(WATER_PLANE_STANDING_M, height)
+        r_standing = r_water * (1.0 - standing / height)  # on the ray, that high above water
+        assert r_water - 2.0 * sigma <= r_standing + 1e-6, (height, r_water, sigma)
+        assert sigma >= 0.1 * r_water - 1e-9
