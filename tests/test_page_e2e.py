@@ -343,6 +343,28 @@ def test_overlay_greys_out_when_untrusted(page) -> None:
     shot(page, "02_untrusted_grey")
 
 
+def test_an_excluded_vo_is_said_and_the_overlay_stays_usable(page) -> None:
+    """The engine excluded the VO (its travel disagreed with the carrier-phase track,
+    ``estimator.vo_coupling.VoConsistency``) while GNSS and IMU still hold the state: the VO
+    chip says so in amber, the notice over the video gives the fault, and the overlay keeps
+    its colours (trusted by the protection levels)."""
+    wait_trusted(page)
+    pause(page)  # no newer frame may replace the one we show
+    page.evaluate("""() => { const f = window.berthing.frame;
+      window.berthing.show({...f, status: {...f.status, vo_status: 'excluded',
+        integrity: {...f.status.integrity, trusted: true,
+                    reasons: ['VO direction of travel 20.7° off over 1 s: VO excluded']}}});
+    }""")
+    assert page.evaluate("() => window.berthing.trust.trusted")
+    chip = page.locator("#st-vo")
+    assert chip.inner_text().endswith("excluded") and chip.get_attribute("data-level") == "warn"
+    notice = page.locator("#untrusted")
+    assert notice.is_visible() and notice.get_attribute("data-level") == "warn"
+    assert "VO excluded" in notice.inner_text()
+    assert "Visual odometry excluded" in (notice.get_attribute("title") or "")
+    shot(page, "02b_vo_excluded")
+
+
 def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server: str) -> None:
     """2 s of IMU missing from 6 s: the page says "no position" within a second, greys the
     overlay, raises a sounding integrity alarm the officer acknowledges, and trusts the pose
