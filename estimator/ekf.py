@@ -684,6 +684,10 @@ class ErrorStateEkf:
         s = self.nominal
         return s.position_ned + s.C_body_to_level @ self.lever_camera
 
+    def camera_attitude(self) -> np.ndarray:
+        """C_L^C of the nominal state: level frame → camera frame."""
+        return (self.nominal.C_body_to_level @ self.C_camera_to_body).T
+
     def measured_world_to_level(self, C_world_to_camera: np.ndarray) -> np.ndarray:
         """Ĉ_B^L C_C^B C_W^C: where the INS attitude and the VO put the VO world (thesis Θ)."""
         C = self.nominal.C_body_to_level

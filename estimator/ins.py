@@ -239,9 +239,9 @@ class Ins:
         v1 = v0 + dv_f + (g - 2.0 * _cross(self.omega_ie, v_mid)) * dt
         s.position_ned = r0 + 0.5 * dt * (v0 + v1)
         s.velocity_ned = v1
-        dC = rotvec_to_dcm(w_coning * dt)
-        C1 = self._earth_rotation(dt) @ C0 @ dC
-        self.C_gyro = self._earth_rotation(dt) @ self.C_gyro @ dC
+        earth_dcm, dC = self._earth_rotation(dt), rotvec_to_dcm(w_coning * dt)
+        C1 = earth_dcm @ C0 @ dC
+        self.C_gyro = earth_dcm @ self.C_gyro @ dC
         self._steps += 1
         if self._steps % _ORTHONORMALIZE_EVERY == 0:
             C1 = orthonormalize(C1)

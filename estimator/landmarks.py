@@ -405,7 +405,8 @@ class ViewWindow:
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """One frame's share of the solve: a solve is started when one is due and goes on by
         one alternation per call, so that no frame carries all of it (a live frame has
-        100 ms). Returns ``solve``'s result at the call that finishes it, None otherwise.
+        100 ms). Returns the solution (``_solve_steps``) at the call that finishes it, None
+        otherwise.
         The solve works on the views as they were when it started; the result arrives
         ``JointParams.iterations`` calls later, always the same for a given recording."""
         if self._job is None:
@@ -416,14 +417,6 @@ class ViewWindow:
             self._job = None
             return self._result
         return None
-
-    def solve(self, t: float, priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The whole solve at once (``step`` spreads it over frames)."""
-        for _ in self._solve_steps(t, priors):
-            pass
-        assert self._result is not None
-        return self._result
 
     def _solve_steps(self, t: float,
                      priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]

@@ -245,7 +245,7 @@ class Fusion:
             phase = "degraded"
         vo_status = self.coupling.status
         if vo_status == "tracking" and self.coupling.excluded:
-            vo_status = "excluded"  # tracking, but its rotation disagrees with the gyro's
+            vo_status = "excluded"  # tracking, but off the gyro or the fused track
         scale = None
         converged = False
         if ekf is not None and ekf.vo is not None and vo_status == "tracking":

@@ -10,13 +10,12 @@ point seen is one EKF in L, seeded from its mapped VO point and updated with its
 fused camera pose and covariance; ``structure`` gives the refined point once it is reportable
 (``structure(refined=False)``: the raw points).
 
-The VO's rotation is checked against the gyro's at every tracked frame (``VoConsistency``):
-a VO whose rotation runs away from the gyro's faster than the EKF's own model of its drift
-allows (a map built on a wrong two-view geometry, rotation traded against sideways
-translation) would drag the fused heading with it. It is then excluded — declared
-("vo-inconsistent"), its segment dropped from the EKF, the attitude σ widened by what it may
-have pulled — and mapped afresh once its rotation has agreed with the gyro's again for the
-longest window.
+Every tracked frame is first checked (``VoConsistency``): its rotation against the gyro's and
+its direction of travel against the fused track. A VO that departs from them further than the
+EKF's own model of its drift allows (a map built on a wrong two-view geometry, rotation traded
+against sideways translation) would drag the fused heading with it. It is then excluded —
+declared ("vo-inconsistent"), its segment dropped from the EKF, the attitude σ widened by what
+it may have pulled — and mapped afresh once it has agreed again for the longest window.
 """
 
 from __future__ import annotations
@@ -31,6 +30,7 @@ import cv2
 import numpy as np
 
 from .ekf import EkfConfig, ErrorStateEkf, chi2_gate
+from .frames import dcm_to_rotvec
 from .integrity import IntegrityMonitor
 from .landmarks import LandmarkMap, LandmarkParams, SolvedViews, camera_pose_covariance
 from .records import CameraCalibration
@@ -39,9 +39,10 @@ from .vo import VoOutput
 VO_START_BASELINE = 0.3  # VO units moved since the anchor frame before a segment is mapped
 VO_START_METRES = 0.3  # ... and metres (a sensible first scale from the INS)
 VO_START_SCALE_SIGMA = 0.3  # relative σ of that first scale
-# The VO's rotation is compared with the gyro's over these spans: a fast runaway shows in the
-# short one, a slow steady one in the long one.
+# The VO is compared with the gyro and the fused track over these spans: a fast runaway shows
+# in the short one, a slow steady one in the long one.
 VO_CHECK_WINDOWS_S = (1.0, 2.0, 5.0)
+MIN_TRAVEL_M = 1.0  # the direction of travel is checked over windows with this much of it
 # A VO found inconsistent may have pulled the fused attitude by as much as it disagrees, but
 # no more than this (a direction of travel tens of degrees off moves the heading degrees).
 MAX_PULL_DEG = 3.0
@@ -68,8 +69,6 @@ class _Seen:
     camera_position_ned: np.ndarray  # fused
     attitude_sigma: float  # fused, rad (largest axis)
 
-
-MIN_TRAVEL_M = 1.0  # the direction of travel is checked over windows with this much of it
 
 
 class VoConsistency:
@@ -119,7 +118,7 @@ class VoConsistency:
         # camera at the start → camera now: by the VO, and by the gyro through the mounting
         R_vo = now.C_world_to_camera @ old.C_world_to_camera.T
         R_gyro = self.C_cb.T @ now.C_gyro.T @ old.C_gyro @ self.C_cb
-        angle = _angle(R_vo @ R_gyro.T)
+        angle = float(np.linalg.norm(dcm_to_rotvec(R_vo @ R_gyro.T)))
         travel = float(np.linalg.norm(now.camera_position_ned - old.camera_position_ned))
         var = cfg.vo_attitude_psd * (now.t - old.t) + cfg.vo_attitude_per_m * travel
         return VoDisagreement("rotation", angle, now.t - old.t, angle**2 / var)
@@ -143,10 +142,6 @@ class VoConsistency:
         """How long (s) the checked frames of this segment span up to ``t``."""
         return t - self._seen[0].t if self._seen else 0.0
 
-
-def _angle(R: np.ndarray) -> float:
-    """Rotation angle (rad) of a rotation matrix."""
-    return math.acos(max(-1.0, min(1.0, 0.5 * (float(np.trace(R)) - 1.0))))
 
 
 class VoCoupling:
@@ -201,17 +196,16 @@ class VoCoupling:
         return self.excluded_since is not None
 
     def _consistent(self, out: VoOutput, ekf: ErrorStateEkf) -> bool:
-        """Check the VO's rotation against the gyro's (module docstring): False while it is
-        excluded."""
+        """Check the VO against the gyro and the fused track (module docstring): False while
+        it is excluded."""
         if self.consistency is None:
             self.consistency = VoConsistency(ekf.cfg, ekf.C_camera_to_body)
         t = float(out.time)
         ekf.flush()
-        C_bl = ekf.nominal.C_body_to_level
         bad = self.consistency.check(_Seen(
             t, out.segment, np.asarray(out.C_world_to_camera, float),
             np.asarray(out.camera_position_world, float), ekf.ins.C_gyro.copy(),
-            (C_bl @ ekf.C_camera_to_body).T, ekf.camera_position(),
+            ekf.camera_attitude(), ekf.camera_position(),
             math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0))))
         if bad is not None:
             if not self.excluded:
@@ -276,7 +270,7 @@ class VoCoupling:
         ekf.flush()
         ix, P = ekf.ix, ekf.P
         C_bl = ekf.nominal.C_body_to_level
-        C_lc = (C_bl @ ekf.C_camera_to_body).T
+        C_lc = ekf.camera_attitude()
         p_cam = ekf.camera_position()
         pose_cov = camera_pose_covariance(P[ix.R, ix.R], P[ix.E, ix.E], C_bl @ ekf.lever_camera,
                                           P[ix.R, ix.E])
