@@ -140,13 +140,22 @@ def _candidates(rec: Recording, scene: PortScene | None, pts: np.ndarray, t: flo
         start = float(rec.manifest.start_gpst)
         _img, depth = scene.render(C, c, t - start, cam, np.random.default_rng(0),
                                    return_depth=True)
-        vis = []
-        for j in cand:
-            u, v = int(round(uv[j, 0])), int(round(uv[j, 1]))
-            dz = depth[v - 1:v + 2, u - 1:u + 2]
-            vis.append(bool(np.isfinite(dz).all() and np.min(np.abs(dz - z[j])) < 0.03 * z[j]))
+        vis = [clickable(depth, uv[j], z[j]) for j in cand]
         cand = cand[np.array(vis, bool)]
     return cand, uv
+
+
+def clickable(depth: np.ndarray, uv: np.ndarray, z: float, tolerance: float = 0.03) -> bool:
+    """Whether a scene point at camera depth ``z`` projecting at pixel ``uv`` is what a click
+    there designates, by the rendered ``depth`` image: it shows in the click's 3x3 pixels
+    (within ``tolerance`` of its depth) and nothing nearer does. A click on the silhouette of
+    a moored boat before the quay designates the boat (the product takes the nearest surface
+    under a click), so the quay point behind it is no truth for that click."""
+    u, v = int(round(uv[0])), int(round(uv[1]))
+    dz = depth[v - 1:v + 2, u - 1:u + 2]
+    return bool(dz.size == 9 and np.isfinite(dz).all()
+                and np.min(np.abs(dz - z)) < tolerance * z
+                and np.min(dz) > (1.0 - tolerance) * z)
 
 
 def clicked_point(rec: Recording, truth: Truth, click: Click) -> int | None:

@@ -174,3 +174,24 @@ def test_quay_foot_clicks_lie_on_the_true_quay_foot(sim_recording: Path) -> None
     pos = rec.reference.interpolate(t)[0]
     assert 0.0 < bow < across(pos[:2])
     assert rebuild_scene(rec) is not None  # the visibility check ran against the scene
+
+
+def test_a_click_on_a_nearer_silhouette_has_no_far_truth() -> None:
+    """``evaluation.truth.clickable``: a quay point is the truth of a click on it when it shows
+    in the click's 3x3 pixels and nothing nearer does. The background beside a quay edge
+    keeps it; a moored boat's corner before it does not (the click takes the boat, the
+    nearest surface), nor does a point hidden altogether."""
+    import numpy as np
+
+    from evaluation.truth import clickable
+
+    depth = np.full((9, 9), 200.0)  # far buildings
+    depth[4:, :] = 20.0  # the quay face from row 4 down; its top edge at row 4
+    uv = np.array([4.0, 4.0])
+    assert clickable(depth, uv, 20.0)  # on the edge, the far background above: clickable
+    boat = depth.copy()
+    boat[4:, 5:] = 19.2  # a moored hull 0.8 m before the quay, its corner next to the click
+    assert not clickable(boat, uv, 20.0)
+    assert clickable(boat, np.array([2.0, 6.0]), 20.0)  # clear of the hull: clickable again
+    assert not clickable(depth, uv, 25.0)  # hidden behind the quay face
+    assert not clickable(depth, np.array([0.0, 4.0]), 20.0)  # at the image border
