@@ -24,6 +24,7 @@ from .cpp import (
     EpochGeometry,
     EtaRow,
     atmosphere_corrected,
+    common_rate_scatter,
     detect_cycle_slips,
     elevation_sigma,
     eta_observations,
@@ -210,7 +211,7 @@ class CarrierPhaseCoupling:
                 self.last_velocity_time = ekf.time
             else:
                 used = set()
-        res_eta, res_sd = ekf.update_carrier_phase(eta, sd_rows)
+        res_eta, res_sd = ekf.update_carrier_phase(eta, sd_rows, self._rate_sigma(eta, ekf))
         if eta:
             bad = set(res_eta.rejected)
             used = {r.sat for k, r in enumerate(rows) if k not in bad}
@@ -229,6 +230,18 @@ class CarrierPhaseCoupling:
             if res_sd.accepted:
                 self.aligning = False
         return used
+
+    def _rate_sigma(self, eta: Sequence[EtaInput], ekf: ErrorStateEkf) -> float:
+        """The TDCP rate σ common to a satellite's antennas for this epoch: the configured
+        one, or the epoch's own scatter when larger (a burst: ``common_rate_scatter``)."""
+        if not eta:
+            return self.cfg.tdcp_rate_sigma
+        y = np.array([r.measured - ekf.eta_model(r.antenna, r.u_ned, r.interval)[0]
+                      for r in eta])
+        scatter = common_rate_scatter([r.sat for r in eta], y,
+                                      np.array([r.u_ned for r in eta]),
+                                      np.array([r.sigma for r in eta]))
+        return max(self.cfg.tdcp_rate_sigma, scatter or 0.0)
 
     def _seed_delays(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry,
                      ekf: ErrorStateEkf, origin: WorldOrigin) -> None:

@@ -142,7 +142,10 @@ class EkfConfig:
     init_clock_drift: float = 300.0  # m/s (1 µs/s: unknown TCXO offset)
     # measurement noise
     phase_sigma_m: float = 0.0015  # undifferenced carrier phase at zenith (noise, multipath)
-    tdcp_rate_sigma: float = 0.001  # m/s, unmodelled rate of the TDCP (atmosphere, multipath)
+    # m/s, unmodelled rate of the TDCP (atmosphere, signal): one per satellite, common to its
+    # antennas (the 1 mm/s it was for each antenna alone, averaged over four); an epoch's own
+    # scatter replaces it when larger (a burst: ``cpp.common_rate_scatter``)
+    tdcp_rate_sigma: float = 0.0005
     vo_attitude_sigma: float = 0.15 * _DEG  # rad
     vo_position_sigma: float = 0.03  # m
     vo_position_relative: float = 0.005  # + this fraction of the VO distance from its origin
@@ -547,7 +550,8 @@ class ErrorStateEkf:
         d = np.concatenate([[0.0], self.delays])
         return float(d[j] - d[i])
 
-    def update_carrier_phase(self, eta: Sequence[EtaInput], sds: Sequence[SdRow]
+    def update_carrier_phase(self, eta: Sequence[EtaInput], sds: Sequence[SdRow],
+                             rate_sigma: float | None = None
                              ) -> tuple[UpdateResult, UpdateResult]:
         """The carrier phase of one epoch k, satellite by satellite (rows gated one by one):
 
@@ -563,7 +567,8 @@ class ErrorStateEkf:
         among themselves exactly. Different satellites' noises are independent, so the
         satellites are processed one after the other (exact for the linear update, and small
         matrices only). filterpy has no cross-covariance term, so this update is written out
-        here (Joseph form with correlated noise)."""
+        here (Joseph form with correlated noise). ``rate_sigma`` (m/s): the TDCP's unmodelled
+        rate, common to a satellite's antennas (``EkfConfig.tdcp_rate_sigma`` when None)."""
         self.flush()
         eta = [r for r in eta if self._interval_ok(r.interval)]
         valid = self._noise_time is not None and self.clone_time is not None \
@@ -584,7 +589,8 @@ class ErrorStateEkf:
         M_new = np.zeros((self.ix.n, 0))
         for sat, (e_rows, s_rows) in groups.items():
             M_prev, M_new, keys = self._carrier_satellite(
-                sat, e_rows, s_rows, prev, M_prev, M_new, results, offsets)
+                sat, e_rows, s_rows, prev, M_prev, M_new, results, offsets,
+                self.cfg.tdcp_rate_sigma if rate_sigma is None else rate_sigma)
             new_keys += keys
         self._feedback()  # once per epoch: the rows above were linearised at the same nominal
         for res in results:
@@ -602,7 +608,7 @@ class ErrorStateEkf:
     def _carrier_satellite(self, sat: str, e_rows: list[EtaInput], s_rows: list[SdRow],
                            prev: dict[tuple[int, str], int], M_prev: np.ndarray,
                            M_new: np.ndarray, results: tuple[UpdateResult, UpdateResult],
-                           offsets: dict[int, int]
+                           offsets: dict[int, int], rate_sigma: float
                            ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
         """One satellite's η and ζ rows: y = H x + A n_k + (own noise), cov(x, v) = Cxv."""
         ix, cfg = self.ix, self.cfg
@@ -622,7 +628,7 @@ class ErrorStateEkf:
             s_phase = r.sigma * r.interval / math.sqrt(2.0)
             sig[col[r.antenna]] = s_phase
             A[k, col[r.antenna]] = 1.0 / r.interval
-            R_own[k] = (s_phase / r.interval) ** 2 + cfg.tdcp_rate_sigma**2
+            R_own[k] = (s_phase / r.interval) ** 2
             c = prev.get((r.antenna, sat))
             if c is not None:
                 Cxv[:, k] = -M_prev[:, c] / r.interval
@@ -636,6 +642,10 @@ class ErrorStateEkf:
             A[k, col[r.other]] = -1.0
         Sig = sig**2
         R = (A * Sig) @ A.T + np.diag(R_own)
+        # The TDCP's unmodelled rate (the atmosphere's change, multipath) is the satellite's:
+        # one for the four antennas 10 cm apart, not four independent ones.
+        n_eta = len(e_rows)
+        R[:n_eta, :n_eta] += rate_sigma**2
         y = y - H @ self.kf.x.ravel()  # errors estimated from the satellites done so far
         P = self.kf.P
         PHt = P @ H.T + Cxv

@@ -94,6 +94,38 @@ def test_tdcp_velocity_of_static_real_receivers_is_zero(real):
         assert all(len(x.satellites) >= 10 for x in v)
 
 
+def test_an_epochs_own_tdcp_scatter_on_real_receivers(real):
+    """``cpp.common_rate_scatter`` on the real static receiver (its antenna still, its clock
+    free): the satellites scatter ~1.7 mm/s about the fit, within the phase noise the rows
+    state (nothing beyond it); a burst of 10 mm/s per satellite is read as such; a wrong
+    velocity (the state's error, not the satellites') is left to the fit, not counted."""
+    nav, base, _ = real
+    rng = np.random.default_rng(5)
+    quiet, burst, moved = [], [], []
+    for k in range(1, 40):
+        eps = [base[k - 1], base[k]]
+        geos = []
+        for ep in eps:
+            spp = standalone_position([ep], nav)
+            geos.append(cpp.epoch_geometry(nav, sorted(ep.satellites), ep.time, spp.position,
+                                           spp.clock_bias_m / SPEED_OF_LIGHT))
+        rows = cpp.eta_observations([eps[0]], [eps[1]], geos[0], geos[1]).rows
+        sats = [r.sat for r in rows]
+        u = np.array([r.los_ned for r in rows])
+        y = np.array([r.measured for r in rows])  # still: the velocity is zero
+        sigma = np.array([r.sigma for r in rows])
+        quiet.append(cpp.common_rate_scatter(sats, y, u, sigma))
+        kick = {s: rng.normal(0.0, 0.010) for s in set(sats)}
+        burst.append(cpp.common_rate_scatter(sats, y + [kick[s] for s in sats], u, sigma))
+        moved.append(cpp.common_rate_scatter(sats, y + u @ [0.05, -0.03, 0.02], u, sigma))
+    quiet, burst, moved = (np.array(v, float) for v in (quiet, burst, moved))
+    assert np.isfinite(quiet).all() and len(quiet) == 39
+    assert np.median(quiet) < 0.001
+    assert 0.005 < np.median(burst) < 0.013  # less the (generous) phase noise the rows state
+    np.testing.assert_allclose(moved, quiet, atol=1e-9)
+    assert cpp.common_rate_scatter(sats[:5], y[:5], u[:5], sigma[:5]) is None  # too few
+
+
 def test_injected_slip_is_detected_and_does_not_spike_velocity(real):
     nav, base, _ = real
     k, sat = 40, "G13"

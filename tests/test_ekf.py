@@ -185,7 +185,8 @@ def test_ins_cpp_consistency_and_accuracy(sim):
 @pytest.mark.xfail(strict=True, reason="known: with the simulated atmosphere departing from "
                    "the correction models (issue 15) the integrated carrier-phase position "
                    "drifts more than the filter's white TDCP noise admits; its position σ is "
-                   "~3.7x too small (NEES/dof ~14). The integrity HPL adds an overbound of "
+                   "~2.2x too small (NEES/dof ~4.9; ~14 before the TDCP rate error was made "
+                   "common to a satellite's antennas). The integrity HPL adds an overbound of "
                    "that drift (estimator.integrity); the filter itself still needs a model of "
                    "the correlated error.")
 def test_position_covariance_is_consistent(sim):
@@ -224,6 +225,38 @@ def test_tight_coupling_with_three_satellites(sim):
     # The single differences still hold the heading with 3 satellites.
     yaw = np.degrees([s.de[2] for s in s_t if s.t >= BLOCK_AFTER_S])
     assert np.sqrt(np.mean(np.square(yaw))) < 0.3
+
+
+def test_a_satellites_antennas_share_its_tdcp_rate_error():
+    """The TDCP's unmodelled rate (atmosphere, signal) is the satellite's: four antennas 10 cm
+    apart seeing one satellite learn about as much as one antenna when that rate dominates,
+    not four times as much; their own phase noise still averages over the four."""
+    import copy
+
+    from estimator.ekf import EkfConfig, EtaInput
+
+    origin = np.array([np.radians(34.72), np.radians(135.33), 37.0])
+    ins = Ins(origin, ImuCalibration(), InsState(0.0, np.zeros(3), np.array([1.0, 0.5, 0.0]),
+                                                 euler_to_dcm(0.0, 0.0, 0.7)))
+    # the clock drift known and steady: one satellite's rows inform the displacement
+    ekf = ErrorStateEkf(ins, SMALL_BOAT.antennas_body(), initial_sigmas={"clock_drift": 1e-5},
+                        config=EkfConfig(clock_drift_psd=1e-12))
+    for k in range(1, 101):  # 1 s since the clone: the rows' interval
+        ekf.propagate(0.01 * k, np.zeros(3), np.array([0.0, 0.0, -9.8]))
+    u = np.array([0.3, -0.5, -0.81])
+    u /= np.linalg.norm(u)
+    ix = ekf.ix
+
+    def information(antennas: list[int], rate_sigma: float) -> float:
+        e = copy.deepcopy(ekf)
+        before = u @ e.covariance(ix.R) @ u  # the clone: the displacement is R − R0
+        rows = [EtaInput(antenna=a, sat="G05", u_ned=u, measured=e.eta_model(a, u, 1.0)[0],
+                         sigma=0.002, interval=1.0) for a in antennas]
+        e.update_carrier_phase(rows, [], rate_sigma=rate_sigma)
+        return 1.0 / (u @ e.covariance(ix.R) @ u) - 1.0 / before
+
+    assert information([0, 1, 2, 3], 0.02) < 1.2 * information([0], 0.02)
+    assert information([0, 1, 2, 3], 1e-6) > 1.4 * information([0], 1e-6)
 
 
 # --------------------------------------------------------------------------- VO models
