@@ -23,14 +23,15 @@ from .cpp import (
     SAME_CARRIER_SYSTEMS,
     EpochGeometry,
     EtaRow,
+    TdcpFit,
     atmosphere_corrected,
-    common_rate_scatter,
     detect_cycle_slips,
     elevation_sigma,
     eta_observations,
     loose_velocity,
+    tdcp_fit,
 )
-from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput
+from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput, chi2_gate
 from .frames import ecef_to_ned, ned_to_ecef
 from .gnss_epochs import N_RECEIVERS, GnssFront
 from .integrity import IntegrityMonitor
@@ -211,7 +212,11 @@ class CarrierPhaseCoupling:
                 self.last_velocity_time = ekf.time
             else:
                 used = set()
-        res_eta, res_sd = ekf.update_carrier_phase(eta, sd_rows, self._rate_sigma(eta, ekf))
+        fit = self._fit(eta, ekf)
+        if fit is not None:
+            self._check_ins(fit, ekf)
+        rate_sigma = max(self.cfg.tdcp_rate_sigma, fit.scatter if fit is not None else 0.0)
+        res_eta, res_sd = ekf.update_carrier_phase(eta, sd_rows, rate_sigma)
         if eta:
             bad = set(res_eta.rejected)
             used = {r.sat for k, r in enumerate(rows) if k not in bad}
@@ -231,17 +236,47 @@ class CarrierPhaseCoupling:
                 self.aligning = False
         return used
 
-    def _rate_sigma(self, eta: Sequence[EtaInput], ekf: ErrorStateEkf) -> float:
-        """The TDCP rate σ common to a satellite's antennas for this epoch: the configured
-        one, or the epoch's own scatter when larger (a burst: ``common_rate_scatter``)."""
+    @staticmethod
+    def _fit(eta: Sequence[EtaInput], ekf: ErrorStateEkf) -> TdcpFit | None:
+        """The epoch's η innovations fitted with a common correction (``cpp.tdcp_fit``); only
+        rows over the interval since the EKF's clone (those the update takes)."""
+        if ekf.clone_time is None:
+            return None
+        since = ekf.time - ekf.clone_time
+        eta = [r for r in eta if abs(r.interval - since) < 2e-3]
         if not eta:
-            return self.cfg.tdcp_rate_sigma
+            return None
         y = np.array([r.measured - ekf.eta_model(r.antenna, r.u_ned, r.interval)[0]
                       for r in eta])
-        scatter = common_rate_scatter([r.sat for r in eta], y,
-                                      np.array([r.u_ned for r in eta]),
-                                      np.array([r.sigma for r in eta]))
-        return max(self.cfg.tdcp_rate_sigma, scatter or 0.0)
+        return tdcp_fit([r.sat for r in eta], y, np.array([r.u_ned for r in eta]),
+                        np.array([r.sigma for r in eta]))
+
+    def _check_ins(self, fit: TdcpFit, ekf: ErrorStateEkf) -> None:
+        """The satellites, agreeing among themselves, against the INS's predicted velocity:
+        beyond the χ² gate of both covariances the INS is off (an accelerometer bias step, a
+        shock): every row would be gated out one by one and the INS would drift on unseen,
+        trusted. Declared, and the INS widened by the disagreement (velocity, its change
+        over the interval as an accelerometer bias, the position it may have moved) so this
+        epoch's carrier phase takes it back; the widened σ sets the protection level until
+        the bias is known again (not a critical fault: a slight disagreement need not cost
+        the trust)."""
+        assert ekf.clone_time is not None  # (a fit exists)
+        interval = ekf.time - ekf.clone_time
+        off = fit.correction[:3]
+        S = ekf.mean_velocity_covariance(interval) + fit.covariance[:3, :3]
+        nis = float(off @ np.linalg.solve(S, off))
+        if nis <= chi2_gate(3, self.cfg.gate_probability):
+            if self.monitor.is_active("ins-inconsistent"):
+                self.monitor.clear("ins-inconsistent", ekf.time,
+                                   "INS agrees with the carrier phase again")
+            return
+        speed = float(np.linalg.norm(off))
+        ekf.inflate(position_m=speed * interval, velocity_mps=speed, attitude_rad=0.0,
+                    accel_bias=speed / interval)
+        self.monitor.raise_fault(
+            "ins-inconsistent", ekf.time,
+            f"INS velocity {100 * speed:.0f} cm/s off the carrier phase of {fit.satellites} "
+            "satellites that agree: INS taken back to it")
 
     def _seed_delays(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry,
                      ekf: ErrorStateEkf, origin: WorldOrigin) -> None:

@@ -445,39 +445,54 @@ class ReceiverVelocity:
     residual_rms_mps: float
 
 
-MIN_SCATTER_SATELLITES = 6  # an epoch's own TDCP scatter needs a few beyond the 4 unknowns
+MIN_FIT_SATELLITES = 6  # an epoch's own fit needs a few satellites beyond its 4 unknowns
 
 
-def common_rate_scatter(sats: Sequence[str], innovation: np.ndarray, los: np.ndarray,
-                        sigma: np.ndarray) -> float | None:
-    """This epoch's TDCP rate error common to each satellite's antennas (m/s, 1-σ): the
-    robust scatter of the satellites' innovations (``innovation``, m/s, one per η row, its
-    ``los`` and phase-noise ``sigma``; averaged over a satellite's antennas) about the best
-    common velocity and clock correction, less what the phase noise explains. None with
-    fewer than ``MIN_SCATTER_SATELLITES``.
+@dataclass(frozen=True)
+class TdcpFit:
+    """The satellites' agreement in one epoch's η innovations (measured − predicted, m/s):
+    the common correction they ask for and their scatter about it (``tdcp_fit``)."""
 
-    The atmosphere and the signal (satellite clock, scintillation) change the range of the
-    antennas 10 cm apart alike and come in bursts: a fixed rate σ overweights a burst's
-    satellites four times over and lets them pull the velocity until the gate locks out the
-    rest."""
+    correction: np.ndarray  # (4,) velocity (3, L, m/s, the sign of the innovations) and clock
+    covariance: np.ndarray  # (4,4) of ``correction``
+    scatter: float  # m/s, rate error common to a satellite's antennas beyond the phase noise
+    satellites: int
+
+
+def tdcp_fit(sats: Sequence[str], innovation: np.ndarray, los: np.ndarray,
+             sigma: np.ndarray) -> TdcpFit | None:
+    """Fit one epoch's η innovations (one per row: its satellite, ``los`` and phase-noise
+    ``sigma``; averaged over a satellite's antennas) with a common velocity and clock
+    correction, robustly (again without the satellites far off the first fit). None with
+    fewer than ``MIN_FIT_SATELLITES``.
+
+    The correction is what the satellites, agreeing among themselves, say the INS's
+    prediction is off by. The scatter is the rate error common to a satellite's antennas
+    beyond the phase noise: the atmosphere and the signal (satellite clock, scintillation)
+    change the range of antennas 10 cm apart alike and come in bursts — a fixed σ then
+    weighs a burst's satellites four times over and lets them pull the velocity until the
+    gate locks the rest out."""
     names = sorted(set(sats))
-    if len(names) < MIN_SCATTER_SATELLITES:
+    if len(names) < MIN_FIT_SATELLITES:
         return None
     sats = np.asarray(sats)
     y = np.array([np.mean(innovation[sats == s]) for s in names])
     A = np.array([[*np.mean(los[sats == s], axis=0), 1.0] for s in names])
     noise = float(np.mean([np.mean(sigma[sats == s] ** 2) / np.sum(sats == s) for s in names]))
     keep = np.ones(len(y), bool)
-    scatter = 0.0
-    for _ in range(2):  # fit, then fit again without the satellites far off the first fit
+    x, spread = np.zeros(4), 0.0
+    for _ in range(2):
         x = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
         r = np.abs(y - A @ x)
         n = int(keep.sum())
-        scatter = 1.4826 * float(np.median(r[keep])) * math.sqrt(n / (n - 4))
-        keep = r <= 3.0 * max(scatter, 1e-6)
-        if keep.sum() < MIN_SCATTER_SATELLITES:
+        spread = 1.4826 * float(np.median(r[keep])) * math.sqrt(n / (n - 4))
+        again = r <= 3.0 * max(spread, 1e-6)
+        if again.sum() < MIN_FIT_SATELLITES:
             break
-    return math.sqrt(max(scatter**2 - noise, 0.0))
+        keep = again
+    x = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+    cov = np.linalg.inv(A[keep].T @ A[keep]) * max(spread**2, noise)
+    return TdcpFit(x, cov, math.sqrt(max(spread**2 - noise, 0.0)), int(keep.sum()))
 
 
 def loose_velocity(rows: Sequence[EtaRow], C_ecef_to_level: np.ndarray | None = None,

@@ -144,7 +144,7 @@ class EkfConfig:
     phase_sigma_m: float = 0.0015  # undifferenced carrier phase at zenith (noise, multipath)
     # m/s, unmodelled rate of the TDCP (atmosphere, signal): one per satellite, common to its
     # antennas (the 1 mm/s it was for each antenna alone, averaged over four); an epoch's own
-    # scatter replaces it when larger (a burst: ``cpp.common_rate_scatter``)
+    # scatter replaces it when larger (a burst: ``cpp.tdcp_fit``)
     tdcp_rate_sigma: float = 0.0005
     vo_attitude_sigma: float = 0.15 * _DEG  # rad
     vo_position_sigma: float = 0.03  # m
@@ -393,14 +393,24 @@ class ErrorStateEkf:
         self._clone_position = s.position_ned.copy()
         self._clone_attitude = s.C_body_to_level.copy()
 
-    def inflate(self, position_m: float, velocity_mps: float, attitude_rad: float) -> None:
-        """Widen the INS error covariance by these 1-σ (per axis): motion the IMU did not
-        measure (a gap), so that the next carrier phase is weighed against what is known."""
+    def inflate(self, position_m: float, velocity_mps: float, attitude_rad: float,
+                accel_bias: float = 0.0) -> None:
+        """Widen the INS error covariance by these 1-σ (per axis; ``accel_bias`` m/s²): motion
+        the IMU did not measure (a gap) or measured wrong, so that the next carrier phase is
+        weighed against what is known."""
         self.flush()
         ix, P = self.ix, self.kf.P
         P[ix.R, ix.R] += np.eye(3) * position_m**2
         P[ix.V, ix.V] += np.eye(3) * velocity_mps**2
         P[ix.E, ix.E] += np.eye(3) * attitude_rad**2
+        P[ix.BA, ix.BA] += np.eye(3) * accel_bias**2
+
+    def mean_velocity_covariance(self, interval: float) -> np.ndarray:
+        """Covariance (m²/s²) of the predicted mean velocity of an antenna since the clone,
+        what the η rows over ``interval`` s measure (the array's lever arms aside)."""
+        self.flush()
+        J = self._displacement_rows(0)[1]
+        return J @ self.kf.P @ J.T / interval**2
 
     def reset_delays(self, delays: np.ndarray, sigma: float) -> None:
         """New δ̂ (e.g. from the fractional parts at the compass fix), uncorrelated, σ each."""

@@ -94,14 +94,15 @@ def test_tdcp_velocity_of_static_real_receivers_is_zero(real):
         assert all(len(x.satellites) >= 10 for x in v)
 
 
-def test_an_epochs_own_tdcp_scatter_on_real_receivers(real):
-    """``cpp.common_rate_scatter`` on the real static receiver (its antenna still, its clock
-    free): the satellites scatter ~1.7 mm/s about the fit, within the phase noise the rows
-    state (nothing beyond it); a burst of 10 mm/s per satellite is read as such; a wrong
-    velocity (the state's error, not the satellites') is left to the fit, not counted."""
+def test_an_epochs_own_tdcp_fit_on_real_receivers(real):
+    """``cpp.tdcp_fit`` on the real static receiver (its antenna still, its clock free): the
+    satellites scatter ~1.7 mm/s about the fit, within the phase noise the rows state (no
+    common rate error beyond it); a burst of 10 mm/s per satellite is read as one; a velocity
+    the INS got wrong is the fit's correction (what the INS check weighs), not scatter."""
     nav, base, _ = real
     rng = np.random.default_rng(5)
     quiet, burst, moved = [], [], []
+    wrong = np.array([0.05, -0.03, 0.02])
     for k in range(1, 40):
         eps = [base[k - 1], base[k]]
         geos = []
@@ -114,16 +115,18 @@ def test_an_epochs_own_tdcp_scatter_on_real_receivers(real):
         u = np.array([r.los_ned for r in rows])
         y = np.array([r.measured for r in rows])  # still: the velocity is zero
         sigma = np.array([r.sigma for r in rows])
-        quiet.append(cpp.common_rate_scatter(sats, y, u, sigma))
+        quiet.append(cpp.tdcp_fit(sats, y, u, sigma))
         kick = {s: rng.normal(0.0, 0.010) for s in set(sats)}
-        burst.append(cpp.common_rate_scatter(sats, y + [kick[s] for s in sats], u, sigma))
-        moved.append(cpp.common_rate_scatter(sats, y + u @ [0.05, -0.03, 0.02], u, sigma))
-    quiet, burst, moved = (np.array(v, float) for v in (quiet, burst, moved))
-    assert np.isfinite(quiet).all() and len(quiet) == 39
-    assert np.median(quiet) < 0.001
+        burst.append(cpp.tdcp_fit(sats, y + [kick[s] for s in sats], u, sigma).scatter)
+        moved.append(cpp.tdcp_fit(sats, y + u @ wrong, u, sigma))
+    assert len(quiet) == 39 and all(f.satellites >= 10 for f in quiet)
+    assert np.median([f.scatter for f in quiet]) < 0.001
     assert 0.005 < np.median(burst) < 0.013  # less the (generous) phase noise the rows state
-    np.testing.assert_allclose(moved, quiet, atol=1e-9)
-    assert cpp.common_rate_scatter(sats[:5], y[:5], u[:5], sigma[:5]) is None  # too few
+    for q, m in zip(quiet, moved, strict=True):
+        assert m.scatter == pytest.approx(q.scatter, abs=1e-9)
+        np.testing.assert_allclose(m.correction[:3] - q.correction[:3], wrong, atol=1e-9)
+        assert np.all(np.sqrt(np.diag(q.covariance)[:3]) < 0.01)  # mm/s-level agreement
+    assert cpp.tdcp_fit(sats[:5], y[:5], u[:5], sigma[:5]) is None  # too few satellites
 
 
 def test_injected_slip_is_detected_and_does_not_spike_velocity(real):

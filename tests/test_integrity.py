@@ -141,6 +141,7 @@ FAULT_CASES = {
     "imu-spikes:6:1": "imu-implausible",
     "imu-saturated:6:1": "imu-implausible",
     "imu-backwards:6:0.3": "time-backwards",
+    "imu-bias:6:0.3": "ins-inconsistent",
     "receiver-missing": "receiver-4-silent",
     "receiver-silent:2:6:3": "receiver-2-silent",
     "receiver-silent:1:0:12": "receiver-1-silent",  # the reference antenna, from the start
@@ -196,6 +197,17 @@ def test_fault_is_declared_and_never_misleads(fault: str, sim_recording: Path,
     expected = FAULT_CASES[fault]
     if expected is not None:
         assert expected in raised, (fault, raised)
+    if fault.startswith("imu-bias"):
+        # Between two carrier-phase epochs the INS alone carries the position: a bias step
+        # misleads until the next epoch finds it (the second the alarm is allowed); never
+        # before the fault and never once declared.
+        declared = min(a.t for a in ig.alerts if a.kind == expected and a.active)
+        fault_t = parse_fault(fault).params[0]
+        before = integrity_scores(rec, run, start + 3.0, start + fault_t)
+        after = integrity_scores(rec, run, start + declared, start + rec.manifest.duration_s)
+        assert before.misleading_epochs == 0 and after.misleading_epochs == 0, (before, after)
+        assert after.available_fraction > 0.5, after  # the INS is taken back, not given up
+        ig = after
     assert ig.misleading_epochs == 0, (fault, ig)
     assert ig.hazardous_epochs == 0
     # Declared within a second: the first alert of the expected kind near the fault's time.
