@@ -29,6 +29,7 @@ from .cpp import (
     elevation_sigma,
     eta_observations,
     loose_velocity,
+    robust_lsq,
     tdcp_fit,
 )
 from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput, chi2_gate
@@ -46,6 +47,8 @@ ROUNDING_FRACTION = 0.3  # ... and the measured fraction this close to an intege
 DELAY_SEED_ATTITUDE = math.radians(8.0)  # attitude σ below which the delays' fractions are found
 DELAY_SEED_COHERENCE = 0.8  # |mean phasor| of the fractions below this: they disagree
 SD_INCONSISTENT_FRACTION = 0.5  # this share of the single differences rejected: a fault
+MIN_ATTITUDE_ROWS = 8  # single differences for the attitude check (3 unknowns, a few over)
+ATTITUDE_MIN_SPREAD = 0.3  # the least scatter of their stated σ the attitude check assumes
 
 
 class SdIntegers:
@@ -214,7 +217,8 @@ class CarrierPhaseCoupling:
                 used = set()
         fit = self._fit(eta, ekf)
         if fit is not None:
-            self._check_ins(fit, ekf)
+            self._check_velocity(fit, ekf)
+        self._check_attitude(sd_rows, ekf)
         rate_sigma = max(self.cfg.tdcp_rate_sigma, fit.scatter if fit is not None else 0.0)
         res_eta, res_sd = ekf.update_carrier_phase(eta, sd_rows, rate_sigma)
         if eta:
@@ -251,7 +255,7 @@ class CarrierPhaseCoupling:
         return tdcp_fit([r.sat for r in eta], y, np.array([r.u_ned for r in eta]),
                         np.array([r.sigma for r in eta]))
 
-    def _check_ins(self, fit: TdcpFit, ekf: ErrorStateEkf) -> None:
+    def _check_velocity(self, fit: TdcpFit, ekf: ErrorStateEkf) -> None:
         """The satellites, agreeing among themselves, against the INS's predicted velocity:
         beyond the χ² gate of both covariances the INS is off (an accelerometer bias step, a
         shock): every row would be gated out one by one and the INS would drift on unseen,
@@ -266,17 +270,54 @@ class CarrierPhaseCoupling:
         S = ekf.mean_velocity_covariance(interval) + fit.covariance[:3, :3]
         nis = float(off @ np.linalg.solve(S, off))
         if nis <= chi2_gate(3, self.cfg.gate_probability):
-            if self.monitor.is_active("ins-inconsistent"):
-                self.monitor.clear("ins-inconsistent", ekf.time,
-                                   "INS agrees with the carrier phase again")
+            if self.monitor.is_active("ins-velocity"):
+                self.monitor.clear("ins-velocity", ekf.time,
+                                   "INS velocity agrees with the carrier phase again")
             return
         speed = float(np.linalg.norm(off))
         ekf.inflate(position_m=speed * interval, velocity_mps=speed, attitude_rad=0.0,
                     accel_bias=speed / interval)
         self.monitor.raise_fault(
-            "ins-inconsistent", ekf.time,
+            "ins-velocity", ekf.time,
             f"INS velocity {100 * speed:.0f} cm/s off the carrier phase of {fit.satellites} "
             "satellites that agree: INS taken back to it")
+
+    def _check_attitude(self, sd_rows: Sequence[SdRow], ekf: ErrorStateEkf) -> None:
+        """The single differences, agreeing among themselves, against the INS's attitude (the
+        velocity check's twin for the gyro): their innovations fitted with a common rotation
+        (``cpp.robust_lsq``), beyond the χ² gate of it and the attitude covariance the INS is
+        off (a gyro bias step): the rows would pull it back a little each epoch while it runs
+        away, and the heading stays degrees off under a protection level of tenths. Declared,
+        and the attitude and gyro bias σ widened by the disagreement."""
+        if len(sd_rows) < MIN_ATTITUDE_ROWS or ekf.clone_time is None:
+            return
+        ix = ekf.ix
+        A, y = [], []
+        for r in sd_rows:
+            pred, h = ekf.sd_model(r.ref, r.other, np.asarray(r.los_ned, float))
+            s = math.sqrt(2.0) * r.sigma_m  # the difference of two receivers' phases
+            A.append(h[ix.E] / s)
+            y.append((r.value_m - pred) / s)
+        fit = robust_lsq(np.array(A), np.array(y), MIN_ATTITUDE_ROWS)
+        if fit is None:
+            return
+        off, inv, spread, _keep = fit
+        # their own scatter (in units of the σ they state, which is generous: ~0.3), not
+        # less than ATTITUDE_MIN_SPREAD of it
+        S = ekf.covariance(ix.E) + inv * max(spread, ATTITUDE_MIN_SPREAD) ** 2
+        if float(off @ np.linalg.solve(S, off)) <= chi2_gate(3, self.cfg.gate_probability):
+            if self.monitor.is_active("ins-attitude"):
+                self.monitor.clear("ins-attitude", ekf.time,
+                                   "INS attitude agrees with the single differences again")
+            return
+        angle = float(np.linalg.norm(off))
+        interval = max(ekf.time - ekf.clone_time, 1e-3)
+        ekf.inflate(position_m=0.0, velocity_mps=0.0, attitude_rad=angle,
+                    gyro_bias=angle / interval)
+        self.monitor.raise_fault(
+            "ins-attitude", ekf.time,
+            f"INS attitude {math.degrees(angle):.1f}° off the single differences of "
+            f"{len(sd_rows)} satellite pairs that agree: INS taken back to them")
 
     def _seed_delays(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry,
                      ekf: ErrorStateEkf, origin: WorldOrigin) -> None:

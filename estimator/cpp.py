@@ -459,12 +459,34 @@ class TdcpFit:
     satellites: int
 
 
+def robust_lsq(A: np.ndarray, y: np.ndarray, min_rows: int
+               ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:
+    """Least squares y ≈ A x, then again without the rows beyond 3 robust σ of the first fit
+    (while ``min_rows`` remain): x, (AᵀA)⁻¹ of the rows kept, the residuals' robust σ
+    (dof-corrected) and the mask of the rows kept; None with fewer than ``min_rows`` rows."""
+    n_x = A.shape[1]
+    if len(y) < max(min_rows, n_x + 1):
+        return None
+    keep = np.ones(len(y), bool)
+    spread = 0.0
+    for _ in range(2):
+        x = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        r = np.abs(y - A @ x)
+        n = int(keep.sum())
+        spread = 1.4826 * float(np.median(r[keep])) * math.sqrt(n / (n - n_x))
+        again = r <= 3.0 * max(spread, 1e-9)
+        if again.sum() < min_rows:
+            break
+        keep = again
+    x = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+    return x, np.linalg.inv(A[keep].T @ A[keep]), spread, keep
+
+
 def tdcp_fit(sats: Sequence[str], innovation: np.ndarray, los: np.ndarray,
              sigma: np.ndarray) -> TdcpFit | None:
     """Fit one epoch's η innovations (one per row: its satellite, ``los`` and phase-noise
     ``sigma``; averaged over a satellite's antennas) with a common velocity and clock
-    correction, robustly (again without the satellites far off the first fit). None with
-    fewer than ``MIN_FIT_SATELLITES``.
+    correction (``robust_lsq``). None with fewer than ``MIN_FIT_SATELLITES``.
 
     The correction is what the satellites, agreeing among themselves, say the INS's
     prediction is off by. The scatter is the rate error common to a satellite's antennas
@@ -473,26 +495,16 @@ def tdcp_fit(sats: Sequence[str], innovation: np.ndarray, los: np.ndarray,
     weighs a burst's satellites four times over and lets them pull the velocity until the
     gate locks the rest out."""
     names = sorted(set(sats))
-    if len(names) < MIN_FIT_SATELLITES:
-        return None
     sats = np.asarray(sats)
     y = np.array([np.mean(innovation[sats == s]) for s in names])
-    A = np.array([[*np.mean(los[sats == s], axis=0), 1.0] for s in names])
+    A = np.array([[*np.mean(los[sats == s], axis=0), 1.0] for s in names]).reshape(-1, 4)
+    fit = robust_lsq(A, y, MIN_FIT_SATELLITES)
+    if fit is None:
+        return None
+    x, inv, spread, keep = fit
     noise = float(np.mean([np.mean(sigma[sats == s] ** 2) / np.sum(sats == s) for s in names]))
-    keep = np.ones(len(y), bool)
-    x, spread = np.zeros(4), 0.0
-    for _ in range(2):
-        x = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
-        r = np.abs(y - A @ x)
-        n = int(keep.sum())
-        spread = 1.4826 * float(np.median(r[keep])) * math.sqrt(n / (n - 4))
-        again = r <= 3.0 * max(spread, 1e-6)
-        if again.sum() < MIN_FIT_SATELLITES:
-            break
-        keep = again
-    x = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
-    cov = np.linalg.inv(A[keep].T @ A[keep]) * max(spread**2, noise)
-    return TdcpFit(x, cov, math.sqrt(max(spread**2 - noise, 0.0)), int(keep.sum()))
+    return TdcpFit(x, inv * max(spread**2, noise), math.sqrt(max(spread**2 - noise, 0.0)),
+                   int(keep.sum()))
 
 
 def loose_velocity(rows: Sequence[EtaRow], C_ecef_to_level: np.ndarray | None = None,

@@ -394,16 +394,17 @@ class ErrorStateEkf:
         self._clone_attitude = s.C_body_to_level.copy()
 
     def inflate(self, position_m: float, velocity_mps: float, attitude_rad: float,
-                accel_bias: float = 0.0) -> None:
-        """Widen the INS error covariance by these 1-σ (per axis; ``accel_bias`` m/s²): motion
-        the IMU did not measure (a gap) or measured wrong, so that the next carrier phase is
-        weighed against what is known."""
+                accel_bias: float = 0.0, gyro_bias: float = 0.0) -> None:
+        """Widen the INS error covariance by these 1-σ (per axis; biases in m/s² and rad/s):
+        motion the IMU did not measure (a gap) or measured wrong, so that the next carrier
+        phase is weighed against what is known."""
         self.flush()
         ix, P = self.ix, self.kf.P
         P[ix.R, ix.R] += np.eye(3) * position_m**2
         P[ix.V, ix.V] += np.eye(3) * velocity_mps**2
         P[ix.E, ix.E] += np.eye(3) * attitude_rad**2
         P[ix.BA, ix.BA] += np.eye(3) * accel_bias**2
+        P[ix.BG, ix.BG] += np.eye(3) * gyro_bias**2
 
     def mean_velocity_covariance(self, interval: float) -> np.ndarray:
         """Covariance (m²/s²) of the predicted mean velocity of an antenna since the clone,

@@ -209,8 +209,13 @@ class VoCoupling:
             math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0))))
         if bad is not None:
             if not self.excluded:
-                # What it may have pulled the attitude by: widen the attitude σ so much.
-                ekf.inflate(0.0, 0.0, min(bad.angle_rad, math.radians(MAX_PULL_DEG)))
+                # What it may have pulled the attitude by: widen the attitude σ so much. A
+                # rotation the gyro disagrees with may be the gyro's fault (a bias step) as
+                # well as the VO's: its bias σ is widened too, so the single differences can
+                # take the heading back if it is.
+                pull = min(bad.angle_rad, math.radians(MAX_PULL_DEG))
+                ekf.inflate(0.0, 0.0, pull, gyro_bias=pull / bad.window_s
+                            if bad.what == "rotation" else 0.0)
                 self._drop_segment(ekf)
                 if self.monitor is not None:
                     self.monitor.raise_fault(

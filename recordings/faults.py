@@ -17,6 +17,7 @@ what the estimator reads.
 | imu-saturated | gyro z and accel x stuck at a ±250 °/s, ±2 g range | start, length (40, 5) |
 | imu-backwards | a block of IMU time tags 1 s in the past | start, length (40, 0.5) |
 | imu-bias | accelerometer x biased from then on (MEMS unit after a shock) | start, m/s² (40, 0.3) |
+| gyro-bias | gyro z (yaw rate) biased from then on | start, °/s (40, 1) |
 | receiver-missing | the last receiver's file and antenna removed | – |
 | receiver-silent | one receiver without epochs | receiver (1-based), start, length (4, 40, 10) |
 | cycle-slips | every satellite of every receiver slips (1–30 cycles, unflagged) at once | at (40) |
@@ -71,7 +72,7 @@ class Fault:
 DEFAULTS: dict[str, tuple[float, ...]] = {
     "imu-gap": (40.0, 5.0), "imu-end": (45.0,), "imu-frozen": (40.0, 5.0),
     "imu-spikes": (40.0, 5.0), "imu-saturated": (40.0, 5.0), "imu-backwards": (40.0, 0.5),
-    "imu-bias": (40.0, 0.3),
+    "imu-bias": (40.0, 0.3), "gyro-bias": (40.0, 1.0),
     "receiver-missing": (), "receiver-silent": (4.0, 40.0, 10.0), "cycle-slips": (40.0,),
     "clock-jump": (40.0, 1.0), "spp-outlier": (40.0, 10.0), "half-sky": (),
     "video-zeroed": (3.0, 1.0), "video-end": (45.0,), "video-frozen": (40.0, 5.0),
@@ -191,6 +192,12 @@ def _imu_bias(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
     accel = rec.imu.accel.copy()
     accel[rec.imu.time >= float(rec.manifest.start_gpst) + p[0], 0] += p[1]
     _write_imu(out, rec, rec.imu.time, rec.imu.gyro, accel)
+
+
+def _gyro_bias(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
+    gyro = rec.imu.gyro.copy()
+    gyro[rec.imu.time >= float(rec.manifest.start_gpst) + p[0], 2] += math.radians(p[1])
+    _write_imu(out, rec, rec.imu.time, gyro, rec.imu.accel)
 
 
 def _imu_backwards(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
@@ -374,7 +381,7 @@ def _video_blinded(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
 _INJECT: dict[str, Callable[[Recording, Path, tuple[float, ...]], None]] = {
     "imu-gap": _imu_gap, "imu-end": _imu_end, "imu-frozen": _imu_frozen,
     "imu-spikes": _imu_spikes, "imu-saturated": _imu_saturated,
-    "imu-bias": _imu_bias,
+    "imu-bias": _imu_bias, "gyro-bias": _gyro_bias,
     "imu-backwards": _imu_backwards, "receiver-missing": _receiver_missing,
     "receiver-silent": _receiver_silent, "cycle-slips": _cycle_slips,
     "clock-jump": _clock_jump, "spp-outlier": _spp_outlier, "half-sky": _half_sky,
