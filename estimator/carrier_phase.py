@@ -244,10 +244,7 @@ class CarrierPhaseCoupling:
     def _fit(eta: Sequence[EtaInput], ekf: ErrorStateEkf) -> TdcpFit | None:
         """The epoch's η innovations fitted with a common correction (``cpp.tdcp_fit``); only
         rows over the interval since the EKF's clone (those the update takes)."""
-        if ekf.clone_time is None:
-            return None
-        since = ekf.time - ekf.clone_time
-        eta = [r for r in eta if abs(r.interval - since) < 2e-3]
+        eta = [r for r in eta if ekf.interval_ok(r.interval)]
         if not eta:
             return None
         y = np.array([r.measured - ekf.eta_model(r.antenna, r.u_ned, r.interval)[0]
@@ -264,15 +261,12 @@ class CarrierPhaseCoupling:
         epoch's carrier phase takes it back; the widened σ sets the protection level until
         the bias is known again (not a critical fault: a slight disagreement need not cost
         the trust)."""
-        assert ekf.clone_time is not None  # (a fit exists)
-        interval = ekf.time - ekf.clone_time
+        interval = ekf.since_clone
+        assert interval is not None  # (a fit exists: its rows span it)
         off = fit.correction[:3]
         S = ekf.mean_velocity_covariance(interval) + fit.covariance[:3, :3]
-        nis = float(off @ np.linalg.solve(S, off))
-        if nis <= chi2_gate(3, self.cfg.gate_probability):
-            if self.monitor.is_active("ins-velocity"):
-                self.monitor.clear("ins-velocity", ekf.time,
-                                   "INS velocity agrees with the carrier phase again")
+        if self._agrees("ins-velocity", off, S, ekf.time,
+                        "INS velocity agrees with the carrier phase again"):
             return
         speed = float(np.linalg.norm(off))
         ekf.inflate(position_m=speed * interval, velocity_mps=speed, attitude_rad=0.0,
@@ -289,7 +283,8 @@ class CarrierPhaseCoupling:
         off (a gyro bias step): the rows would pull it back a little each epoch while it runs
         away, and the heading stays degrees off under a protection level of tenths. Declared,
         and the attitude and gyro bias σ widened by the disagreement."""
-        if len(sd_rows) < MIN_ATTITUDE_ROWS or ekf.clone_time is None:
+        interval = ekf.since_clone
+        if len(sd_rows) < MIN_ATTITUDE_ROWS or not interval:
             return
         ix = ekf.ix
         A, y = [], []
@@ -305,19 +300,26 @@ class CarrierPhaseCoupling:
         # their own scatter (in units of the σ they state, which is generous: ~0.3), not
         # less than ATTITUDE_MIN_SPREAD of it
         S = ekf.covariance(ix.E) + inv * max(spread, ATTITUDE_MIN_SPREAD) ** 2
-        if float(off @ np.linalg.solve(S, off)) <= chi2_gate(3, self.cfg.gate_probability):
-            if self.monitor.is_active("ins-attitude"):
-                self.monitor.clear("ins-attitude", ekf.time,
-                                   "INS attitude agrees with the single differences again")
+        if self._agrees("ins-attitude", off, S, ekf.time,
+                        "INS attitude agrees with the single differences again"):
             return
         angle = float(np.linalg.norm(off))
-        interval = max(ekf.time - ekf.clone_time, 1e-3)
         ekf.inflate(position_m=0.0, velocity_mps=0.0, attitude_rad=angle,
                     gyro_bias=angle / interval)
         self.monitor.raise_fault(
             "ins-attitude", ekf.time,
             f"INS attitude {math.degrees(angle):.1f}° off the single differences of "
             f"{len(sd_rows)} satellite pairs that agree: INS taken back to them")
+
+    def _agrees(self, kind: str, off: np.ndarray, S: np.ndarray, t: float,
+                cleared: str) -> bool:
+        """Whether the INS is within the χ² gate of the carrier phase's correction ``off``
+        (covariance ``S``); if so, a ``kind`` fault still raised is cleared."""
+        if float(off @ np.linalg.solve(S, off)) > chi2_gate(len(off), self.cfg.gate_probability):
+            return False
+        if self.monitor.is_active(kind):
+            self.monitor.clear(kind, t, cleared)
+        return True
 
     def _seed_delays(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry,
                      ekf: ErrorStateEkf, origin: WorldOrigin) -> None:

@@ -488,10 +488,15 @@ class ErrorStateEkf:
         lever = self.lever_centre if antenna is None else self.lever_antennas[antenna]
         return s.position_ned + s.C_body_to_level @ lever
 
-    def _interval_ok(self, interval: float) -> bool:
-        if self.clone_time is None:
-            return False
-        return abs((self.time - self.clone_time) - interval) < 2e-3
+    @property
+    def since_clone(self) -> float | None:
+        """Seconds from the clone (the previous GNSS epoch) to now; None before one."""
+        return None if self.clone_time is None else self.time - self.clone_time
+
+    def interval_ok(self, interval: float) -> bool:
+        """Whether carrier-phase rows over ``interval`` s end now and start at the clone."""
+        since = self.since_clone
+        return since is not None and abs(since - interval) < 2e-3
 
     def eta_model(self, antenna: int, u_ned: np.ndarray, interval: float
                   ) -> tuple[float, np.ndarray]:
@@ -523,7 +528,7 @@ class ErrorStateEkf:
         """Loosely coupled TDCP velocity of each antenna (thesis 5.1 y_v), one gate each."""
         out = UpdateResult(kind="velocity", rows=0, accepted=0)
         for v in velocities:
-            if not self._interval_ok(v.interval):
+            if not self.interval_ok(v.interval):
                 continue
             disp, J = self._displacement_rows(v.antenna)
             y = np.asarray(v.velocity_ned, float) - disp / v.interval
@@ -581,7 +586,7 @@ class ErrorStateEkf:
         here (Joseph form with correlated noise). ``rate_sigma`` (m/s): the TDCP's unmodelled
         rate, common to a satellite's antennas (``EkfConfig.tdcp_rate_sigma`` when None)."""
         self.flush()
-        eta = [r for r in eta if self._interval_ok(r.interval)]
+        eta = [r for r in eta if self.interval_ok(r.interval)]
         valid = self._noise_time is not None and self.clone_time is not None \
             and abs(self._noise_time - self.clone_time) < 2e-3
         prev = {k: c for c, k in enumerate(self._noise_keys)} if valid else {}
