@@ -33,6 +33,7 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from scipy.stats import chi2
 
@@ -351,16 +352,18 @@ class FrameCheck:
     def problem(self, image: np.ndarray) -> str:
         """Why the frame is unusable, "" when it is fine."""
         cfg = self.cfg
-        small = np.asarray(image)[::8, ::8]
-        grey = small.mean(axis=2) if small.ndim == 3 else small.astype(float)
+        small = np.ascontiguousarray(np.asarray(image)[::8, ::8])
+        grey = small.astype(np.float32)
+        if grey.ndim == 3:  # the channels' mean (OpenCV's per-pixel transform: numpy's is slow)
+            grey = cv2.transform(grey, np.full((1, grey.shape[2]), 1.0 / grey.shape[2]))
         last, self._last = self._last, small
         level = float(grey.mean())
         if level < cfg.dark_level:
             return f"video black (mean level {level:.0f})"
         if level > cfg.bright_level or np.mean(grey >= 250) > cfg.saturated_fraction:
             return f"video blinded (mean level {level:.0f})"
-        if last is not None and last.shape == small.shape and np.mean(np.abs(
-                small.astype(np.int16) - last.astype(np.int16))) < cfg.frozen_level:
+        if last is not None and last.shape == small.shape and cv2.norm(
+                small, last, cv2.NORM_L1) / small.size < cfg.frozen_level:
             return "video frozen (the same frame again)"
         return ""
 

@@ -506,27 +506,46 @@ def align_affine(image: np.ndarray, templates: np.ndarray, h_inv: np.ndarray,
     warp composed with its inverse. Returns the centres, the warps and the normalised
     correlation at the end."""
     n, side = len(templates), templates.shape[1] - 2
-    (x, y), monomials = _template_grid(side // 2)
+    n_px = side * side
+    _offsets, monomials = _template_grid(side // 2)
     gx, gy = template_gradients(templates)
     target = templates[:, 1:-1, 1:-1].reshape(n, -1)
+    # The step's right-hand side is Σ SD·r over the pixels, SD the steepest-descent images
+    # (gradient x monomial) and r = (patch - mean) / std - target: Σ SD·(patch - mean) / std
+    # minus the template's own share, fixed for the call.
+    order = 3 * _GRAD_OF + _MONOMIAL_OF
+
+    def sd_dot(values: np.ndarray) -> np.ndarray:
+        return np.concatenate([(gx * values) @ monomials, (gy * values) @ monomials],
+                              axis=1)[:, order].astype(float)
+
+    sd_target = sd_dot(target)
+    monomials_t = np.ascontiguousarray(monomials.T)
     centres, warps = centres.astype(float), warps.astype(float)
-    residual = np.zeros_like(target)
-    for _ in range(iterations):
-        c, w = centres.astype(np.float32), warps.astype(np.float32)
-        patch = cv2.remap(image, c[:, :1] + w[:, 0, :1] * x + w[:, 0, 1:] * y,
-                          c[:, 1:] + w[:, 1, :1] * x + w[:, 1, 1:] * y, cv2.INTER_LINEAR,
+    coef = np.empty((2 * n, 3), np.float32)  # each map is a row of (centre, warp row) @ (1, x, y)
+    for _ in range(max(iterations, 1)):
+        coef[:n, 0], coef[n:, 0] = centres[:, 0], centres[:, 1]
+        coef[:n, 1:], coef[n:, 1:] = warps[:, 0], warps[:, 1]
+        maps = coef @ monomials_t
+        patch = cv2.remap(image, maps[:n], maps[n:], cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_REPLICATE)
-        mean = patch.mean(axis=1, keepdims=True)
-        std = np.maximum(np.sqrt(np.maximum((patch * patch).mean(axis=1, keepdims=True)
-                                            - mean * mean, 0.0)), np.float32(1.0))
-        residual = (patch - mean) / std - target
-        g = np.concatenate([(gx * residual) @ monomials, (gy * residual) @ monomials],
-                           axis=1)[:, 3 * _GRAD_OF + _MONOMIAL_OF]
-        step = (h_inv @ g[..., None].astype(float))[..., 0]
+        patch -= patch.mean(axis=1, keepdims=True)
+        power = np.einsum("np,np->n", patch, patch) / n_px
+        std = np.maximum(np.sqrt(power), 1.0)
+        if iterations < 1:
+            break
+        g = sd_dot(patch) / std[:, None].astype(float) - sd_target
+        step = np.einsum("nij,nj->ni", h_inv, g)
         # W(x) ← W(W_step⁻¹(x)), W_step(x) = step[:2] + (I + step[2:]) x
-        warps = warps @ np.linalg.inv(np.eye(2) + step[:, 2:].reshape(n, 2, 2))
+        a, b, c, d = 1.0 + step[:, 2], step[:, 3], step[:, 4], 1.0 + step[:, 5]
+        step_inv = np.stack([d, -b, -c, a], axis=1).reshape(n, 2, 2) / (a * d - b * c)[:, None,
+                                                                                        None]
+        warps = warps @ step_inv
         centres = centres - (warps @ step[:, :2, None])[..., 0]
-    ncc = 1.0 - 0.5 * np.mean(residual ** 2, axis=1)  # at the last step's start
+    # the mean squared residual at the last step's start: |p/σ|² - 2 p·t/σ + |t|² (p centred)
+    mean_r2 = (power / std ** 2 - 2.0 * np.einsum("np,np->n", patch, target) / (n_px * std)
+               + np.einsum("np,np->n", target, target) / n_px)
+    ncc = 1.0 - 0.5 * mean_r2.astype(float)
     return centres, warps, ncc
 
 
