@@ -40,7 +40,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from engine.driver import FusionEngine, dispatch
+from engine.driver import FusionEngine, dispatch, frame_preparer
 from engine.messages import FrameMessage, SensorMessage, sensor_messages
 from recordings.format import Recording
 
@@ -210,7 +210,7 @@ class Scout:
         _lowest_priority()
         try:
             engine = self._make_engine()
-            messages = sensor_messages(self.rec)
+            messages = sensor_messages(self.rec, prepare=frame_preparer(engine))
             last = float(self.rec.manifest.start_gpst)
             for msg in messages:
                 while self._busy():
@@ -459,13 +459,15 @@ class Replayer:
                 with self._cond:
                     self._t = cp.t
                     self._frames = int(np.searchsorted(self.rec.frame_times, cp.t, "right"))
-                return engine, sensor_messages(self.rec, after=cp.t)
+                return engine, sensor_messages(self.rec, after=cp.t,
+                                               prepare=frame_preparer(engine))
         with self._cond:
             self._checkpoints = []
             self._t = float(self.rec.manifest.start_gpst)
             self._frames = 0
         self._sink.on_rewind(None)
-        return self._make_engine(), sensor_messages(self.rec)
+        engine = self._make_engine()
+        return engine, sensor_messages(self.rec, prepare=frame_preparer(engine))
 
     def _maybe_checkpoint(self, engine: FusionEngine, t: float) -> None:
         if self._checkpoint_interval is None or self._checkpoint_note is not None:
@@ -505,7 +507,7 @@ class Replayer:
         loop = _Loop()
         try:
             loop.engine = self._make_engine()
-            loop.messages = sensor_messages(self.rec)
+            loop.messages = sensor_messages(self.rec, prepare=frame_preparer(loop.engine))
         except Exception as exc:
             log.exception("cannot start the replay")
             self._fail(f"cannot start the fusion engine: {exc}")

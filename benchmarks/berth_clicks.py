@@ -32,7 +32,7 @@ from backend.errors import Unprocessable  # noqa: E402
 from backend.models import FusionOptionsModel  # noqa: E402
 from backend.sessions import engine_setup  # noqa: E402
 from engine.camera import Projector  # noqa: E402
-from engine.driver import create_engine, dispatch  # noqa: E402
+from engine.driver import create_engine, dispatch, frame_preparer  # noqa: E402
 from engine.messages import sensor_messages  # noqa: E402
 from engine.targets import Structure  # noqa: E402
 from evaluation.truth import quay_foot_clicks  # noqa: E402
@@ -55,7 +55,7 @@ def evaluate_recording(path: Path, every_s: float) -> dict:
                   threading.RLock())
     lines = []
     state = None
-    for msg in sensor_messages(rec):
+    for msg in sensor_messages(rec, prepare=frame_preparer(engine)):
         s = dispatch(engine, msg)
         if s is None:
             continue

@@ -39,7 +39,7 @@ DEFAULT_RECORDING = ROOT / "recordings" / "default"
 
 
 def replay_speed(path: Path, seconds: float | None = None) -> dict:
-    from engine.driver import dispatch
+    from engine.driver import dispatch, frame_preparer
     from engine.messages import FrameMessage, GnssMessage, sensor_messages
     from estimator.pipeline import Fusion
     from recordings.format import load
@@ -53,7 +53,7 @@ def replay_speed(path: Path, seconds: float | None = None) -> dict:
     frame_ms: list[float] = []
     counts = {"imu": 0, "gnss": 0, "frame": 0}
     first = last = None
-    messages = sensor_messages(rec, until=end)
+    messages = sensor_messages(rec, until=end, prepare=frame_preparer(fusion))
     wall0 = time.perf_counter()
     tic = wall0
     for msg in messages:

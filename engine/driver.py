@@ -52,6 +52,9 @@ class FusionEngine(Protocol):
 
     def process_gnss(self, t: float, epochs: Sequence[GnssEpoch | None]) -> None: ...
 
+    # An engine may also have ``prepare_frame(image)``, a pure function of the image the
+    # frame reader then runs ahead in its thread (``frame_preparer``); its result comes back
+    # as ``process_frame(t, image, prepared)``. Engines without one are never given any.
     def process_frame(self, t: float, image: np.ndarray) -> Any | None: ...
 
     def process_vo(self, out: VoOutput) -> None: ...
@@ -98,7 +101,15 @@ def dispatch(engine: FusionEngine, msg: EngineMessage) -> Any | None:
     if isinstance(msg, VoFrameMessage):
         engine.process_vo(msg.vo)
         return engine.state(at=msg.t)
+    if msg.prepared is not None:
+        return engine.process_frame(msg.t, msg.image, msg.prepared)
     return engine.process_frame(msg.t, msg.image)
+
+
+def frame_preparer(engine: FusionEngine) -> Callable[[np.ndarray], Any] | None:
+    """The engine's ``prepare_frame``, for the frame reader to run ahead (None if it has
+    none)."""
+    return getattr(engine, "prepare_frame", None)
 
 
 def recording_messages(rec: Recording, until: float | None = None,
@@ -145,12 +156,12 @@ def run_vo(rec: Recording, until: float | None = None) -> VoPass:
     outputs: list[VoOutput] = []
     t_vo = t_dec = 0.0
     tic = time.perf_counter()
-    for _, t, image in rec.frames():
+    for _, t, image, prepared in rec.prepared_frames(0, vo.prepare):
         if until is not None and t > until:
             break
         t1 = time.perf_counter()
         t_dec += t1 - tic
-        outputs.append(checked_vo(vo, check, t, image))
+        outputs.append(checked_vo(vo, check, t, image, prepared))
         tic = time.perf_counter()
         t_vo += tic - t1
     n = max(len(outputs), 1)

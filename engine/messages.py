@@ -9,9 +9,11 @@ the smallest latency.
 
 from __future__ import annotations
 
+import contextlib
 import heapq
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +44,9 @@ class FrameMessage:
     index: int
     image: np.ndarray  # BGR
     jpeg: bytes | None = None  # the camera's own JPEG when it sent one (recorded as is)
+    # The engine's ``prepare_frame`` of the image, made ahead by the reading thread (None:
+    # the engine makes it itself, on its own time).
+    prepared: Any = None
 
 
 SensorMessage = ImuMessage | GnssMessage | FrameMessage
@@ -62,10 +67,12 @@ def group_gnss(rec: Recording) -> list[GnssMessage]:
 
 
 def sensor_messages(rec: Recording, after: float | None = None, until: float | None = None,
-                    frames: bool = True) -> Iterator[SensorMessage]:
+                    frames: bool = True, prepare: Callable[[np.ndarray], Any] | None = None
+                    ) -> Iterator[SensorMessage]:
     """All sensor messages of ``rec`` in time order: those strictly after ``after`` and at or
     before ``until`` (gpst) when given; without ``frames``, IMU and GNSS only. Frames are
-    decoded lazily, one at a time."""
+    decoded by a thread a few frames ahead, which also makes each one's ``prepare`` (the
+    engine's ``prepare_frame``) when given."""
     lo = -np.inf if after is None else after
     hi = np.inf if until is None else until
 
@@ -86,10 +93,11 @@ def sensor_messages(rec: Recording, after: float | None = None, until: float | N
         first = int(np.searchsorted(rec.frame_times, lo, side="right"))
         if not frames or first >= len(rec.frame_times):
             return
-        for index, t, image in rec.frames(first):
-            if t > hi:
-                return
-            yield t, _FRAME, index, FrameMessage(t, index, image)
+        with contextlib.closing(rec.prepared_frames(first, prepare)) as decoded:
+            for index, t, image, prepared in decoded:
+                if t > hi:
+                    return
+                yield t, _FRAME, index, FrameMessage(t, index, image, prepared=prepared)
 
     for _t, _kind, _i, msg in heapq.merge(imu(), gnss(), video(), key=lambda m: m[:3]):
         yield msg

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
+import statistics
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -37,7 +38,7 @@ import cv2
 import numpy as np
 from scipy.stats import chi2
 
-from .vo import VisualOdometry, VoOutput
+from .vo import VisualOdometry, VoOutput, WorkingImage
 
 MODES = ("fused", "coasting", "aligning", "no position")
 USABLE_MODES = ("fused", "coasting")
@@ -212,7 +213,8 @@ class IntegrityMonitor:
     @property
     def imu_interval(self) -> float:
         """The IMU's regular sample interval (s), from the recent samples."""
-        return float(np.median(self._intervals)) if self._intervals else 0.01
+        # statistics.median: a tenth of np.median's cost on 50 floats, asked every sample
+        return float(statistics.median(self._intervals)) if self._intervals else 0.01
 
     def imu_gap(self, t: float) -> float:
         """The time since the last used IMU sample (the gap a sample at ``t`` closes)."""
@@ -368,13 +370,14 @@ class FrameCheck:
         return ""
 
 
-def checked_vo(vo: VisualOdometry, check: FrameCheck, t: float, image: np.ndarray) -> VoOutput:
+def checked_vo(vo: VisualOdometry, check: FrameCheck, t: float, image: np.ndarray,
+               prepared: WorkingImage | None = None) -> VoOutput:
     """The VO's output of a frame, or, for a frame unfit for it, an output that says why
     (status "skipped"; the VO's state untouched). The engine and the evaluation's VO pass
-    both go through here."""
+    both go through here. ``prepared``: the VO's ``prepare`` of the image, made ahead."""
     problem = check.problem(image)
     if not problem:
-        return vo.process(t, image)
+        return vo.process(t, image, prepared)
     return VoOutput(time=float(t), status="skipped", segment=-1, C_world_to_camera=None,
                     camera_position_world=None, n_tracked=0, n_inliers=0, is_keyframe=False,
                     points_world=np.zeros((0, 3)), point_ids=np.zeros(0, np.int64),

@@ -54,7 +54,7 @@ from .integrity import Alert, FrameCheck, IntegrityMonitor, checked_vo
 from .landmarks import LandmarkMap, SolvedViews
 from .options import FusedState, FusionOptions, FusionStatus, WorldOrigin
 from .records import Calibration, GnssEpoch, NavigationData
-from .vo import VisualOdometry, VoOutput
+from .vo import VisualOdometry, VoOutput, WorkingImage
 from .vo_coupling import VoCoupling
 
 __all__ = ["Fusion", "FusionOptions", "FusionStatus", "FusedState"]
@@ -165,12 +165,19 @@ class Fusion:
             self._schedule(_Pending(t, "gnss", epochs))
         self._timer.add("gnss", _time.perf_counter() - t0)
 
-    def process_frame(self, t: float, image: np.ndarray) -> FusedState | None:
-        """One video frame: VO, then the fused state at the frame time (for the overlay)."""
+    def prepare_frame(self, image: np.ndarray) -> WorkingImage | None:
+        """What ``process_frame`` will need of ``image`` and may be made ahead, in a frame
+        reader's thread (the VO's ``prepare``: pure, no state touched); None without a VO."""
+        return None if self.vo is None else self.vo.prepare(image)
+
+    def process_frame(self, t: float, image: np.ndarray,
+                      prepared: WorkingImage | None = None) -> FusedState | None:
+        """One video frame: VO, then the fused state at the frame time (for the overlay).
+        ``prepared``: the image's ``prepare_frame``, when it was made ahead."""
         t0 = _time.perf_counter()
         if self.vo is not None:
             t1 = _time.perf_counter()
-            out = checked_vo(self.vo, self.frame_check, float(t), image)
+            out = checked_vo(self.vo, self.frame_check, float(t), image, prepared)
             self._timer.add("vo", _time.perf_counter() - t1)
             self.process_vo(out)
         state = self.state(at=float(t))

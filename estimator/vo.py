@@ -48,6 +48,7 @@ from __future__ import annotations
 import time as _time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -101,6 +102,13 @@ class VoParams:
     ba_outlier_px: float = 2.0  # points with a larger BA residual are dropped
     history_frames: int = 40  # recent frames kept to check new points against their whole track
     history_checks: int = 8  # at most this many of them checked per new point set
+
+
+class WorkingImage(NamedTuple):
+    """A frame as the VO reads it (``VisualOdometry.prepare``)."""
+
+    gray: np.ndarray  # uint8, at the working level (``working_camera``)
+    blurred: np.ndarray | None  # float32, for the templates (None without the template check)
 
 
 @dataclass
@@ -671,14 +679,22 @@ class VisualOdometry:
 
     # ---------------------------------------------------------------- public interface
 
-    def process(self, time: float, image_bgr: np.ndarray) -> VoOutput:
-        """Track the frame taken at ``time`` and return the VO output for it."""
-        t_start = _time.perf_counter()
+    def prepare(self, image_bgr: np.ndarray) -> WorkingImage:
+        """The frame as the VO reads it. Depends on the image and the parameters alone, so a
+        frame reader may call it in its own thread, ahead of ``process``."""
         gray = image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
         if self.level:
             gray = cv2.resize(gray, self._size, interpolation=cv2.INTER_AREA)  # block means
         blurred = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), self.params.template_blur_px
                                    ) if self.params.template_check else None
+        return WorkingImage(gray, blurred)
+
+    def process(self, time: float, image_bgr: np.ndarray,
+                prepared: WorkingImage | None = None) -> VoOutput:
+        """Track the frame taken at ``time`` and return the VO output for it (``prepared``:
+        the frame's ``prepare`` when it was made ahead)."""
+        t_start = _time.perf_counter()
+        gray, blurred = prepared if prepared is not None else self.prepare(image_bgr)
         if len(self._tracks) and self._prev_gray is not None:
             uv, ok = self._track_lk(self._prev_gray, gray)
             if self.params.template_check:

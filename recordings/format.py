@@ -8,6 +8,7 @@ shown by ``summary``.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -250,26 +251,34 @@ class Recording:
         ``next``). Stops with a ``RecordingWarning`` when the video ends before ``frames.csv``;
         frames beyond ``frames.csv`` have no time and are not returned.
         """
+        return _without_prepared(self.prepared_frames(start, None))
+
+    def prepared_frames(self, start: int, prepare: Callable[[np.ndarray], Any] | None
+                        ) -> Iterator[tuple[int, float, np.ndarray, Any]]:
+        """As ``frames``, each with ``prepare(image)`` (None without ``prepare``), made in the
+        decoding thread: a pure function of the image that the consumer would otherwise
+        compute on its own critical path."""
         n = len(self.frame_times)
         if not 0 <= start <= n:
             raise IndexError(f"start frame {start} outside 0..{n}")
         cap = self._open_video()
         _skip_to(cap, self.video_path(), start)
-        return self._iter_frames(cap, start, n)
+        return self._iter_frames(cap, start, n, prepare)
 
-    def _iter_frames(self, cap: cv2.VideoCapture, start: int,
-                     n: int) -> Iterator[tuple[int, float, np.ndarray]]:
-        reads = _read_ahead(cap, n - start)
+    def _iter_frames(self, cap: cv2.VideoCapture, start: int, n: int,
+                     prepare: Callable[[np.ndarray], Any] | None
+                     ) -> Iterator[tuple[int, float, np.ndarray, Any]]:
+        reads = _read_ahead(cap, n - start, prepare)
         try:
             for i in range(start, n):
-                ok, image = next(reads)
+                ok, image, prepared = next(reads)
                 if not ok:
                     warnings.warn(
                         f"{self.video_path()}: the video ends at frame {i} but "
                         f"{self.manifest.files['frame_times']} lists {n} frames; stopping",
                         RecordingWarning, stacklevel=2)
                     return
-                yield i, float(self.frame_times[i]), image
+                yield i, float(self.frame_times[i]), image, prepared
         finally:
             reads.close()  # the reading thread stops before the video is released
             cap.release()
@@ -290,17 +299,27 @@ class Recording:
         return image
 
 
+def _without_prepared(frames: Iterator[tuple[int, float, np.ndarray, Any]]
+                      ) -> Iterator[tuple[int, float, np.ndarray]]:
+    with contextlib.closing(frames):  # stopped early: the reading thread stops too
+        for i, t, image, _ in frames:
+            yield i, t, image
+
+
 RAW_MJPEG_SUFFIXES = (".mjpeg", ".mjpg")  # concatenated JPEGs: what a live session writes
 
 
 READ_AHEAD_FRAMES = 3
 
 
-def _read_ahead(cap: cv2.VideoCapture, count: int) -> Iterator[tuple[bool, np.ndarray | None]]:
-    """``cap.read()`` results, up to ``count``, decoded by a thread up to
-    ``READ_AHEAD_FRAMES`` ahead: the decoder (which releases the GIL) works on another core
-    while the caller processes the last frame. The frames and their order are those of
-    ``cap.read()``; an error in the thread is raised here."""
+def _read_ahead(cap: cv2.VideoCapture, count: int,
+                prepare: Callable[[np.ndarray], Any] | None = None
+                ) -> Iterator[tuple[bool, np.ndarray | None, Any]]:
+    """``cap.read()`` results with ``prepare(image)`` of each (None without it), up to
+    ``count``, decoded by a thread up to ``READ_AHEAD_FRAMES`` ahead: the decoder (which
+    releases the GIL) works on another core while the caller processes the last frame. The
+    frames and their order are those of ``cap.read()``; an error in the thread (or in
+    ``prepare``) is raised here."""
     slots: queue.Queue = queue.Queue(maxsize=READ_AHEAD_FRAMES)
     stop = threading.Event()
 
@@ -316,20 +335,21 @@ def _read_ahead(cap: cv2.VideoCapture, count: int) -> Iterator[tuple[bool, np.nd
         try:
             for _ in range(count):
                 ok, image = cap.read()
-                offer((ok, image, None))
+                prepared = prepare(image) if ok and prepare is not None else None
+                offer((ok, image, prepared, None))
                 if not ok or stop.is_set():
                     return
         except BaseException as exc:  # handed to the reader, never lost with the thread
-            offer((False, None, exc))
+            offer((False, None, None, exc))
 
     thread = threading.Thread(target=read, name="video-read-ahead", daemon=True)
     thread.start()
     try:
         for _ in range(count):
-            ok, image, error = slots.get()
+            ok, image, prepared, error = slots.get()
             if error is not None:
                 raise error
-            yield ok, image
+            yield ok, image, prepared
             if not ok:
                 return
     finally:

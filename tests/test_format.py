@@ -280,10 +280,33 @@ def test_frames_read_ahead_in_order_stop_cleanly_and_raise_decoder_errors(
             return True, np.full((2, 2, 3), self.calls, np.uint8)
 
     reads = fmt._read_ahead(Broken(), 10)
-    assert [int(image[0, 0, 0]) for _, image in (next(reads), next(reads))] == [1, 2]
+    assert [int(image[0, 0, 0]) for _, image, _ in (next(reads), next(reads))] == [1, 2]
     with pytest.raises(RuntimeError, match="decoder fell over"):
         next(reads)
     assert readers() == []
+
+
+def test_prepared_frames_carry_what_the_reading_thread_made_of_them(
+        loaded: fmt.Recording) -> None:
+    """``prepare`` runs in the reading thread on each decoded image: its result comes with the
+    very frame; an error in it reaches the reader, and no thread is left behind."""
+    seen: list[str] = []
+
+    def prepare(image: np.ndarray) -> float:
+        seen.append(threading.current_thread().name)
+        return float(image.mean())
+
+    got = list(loaded.prepared_frames(1, prepare))
+    assert [i for i, *_ in got] == list(range(1, N_FRAMES))
+    assert all(p == float(image.mean()) for _, _, image, p in got)
+    assert set(seen) == {"video-read-ahead"}
+
+    def broken(image: np.ndarray) -> None:
+        raise ValueError("cannot prepare")
+
+    with pytest.raises(ValueError, match="cannot prepare"):
+        list(loaded.prepared_frames(0, broken))
+    assert not [t for t in threading.enumerate() if t.name == "video-read-ahead"]
 
 
 def test_load_accepts_manifest_path_and_skips_gnss(pristine) -> None:
