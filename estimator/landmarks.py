@@ -49,7 +49,7 @@ millisecond).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -364,8 +364,7 @@ class ViewWindow:
         self.params = params
         self.views: list[_View] = []
         self._last_solve = -math.inf
-        self._job: Iterator[None] | None = None  # the solve under way (``step``)
-        self._result: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._job: _JointSolve | None = None  # the solve under way (``step``)
 
     def add(self, t: float, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
             attitude_cov: np.ndarray | None, ids: np.ndarray, xy: np.ndarray) -> None:
@@ -405,75 +404,109 @@ class ViewWindow:
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """One frame's share of the solve: a solve is started when one is due and goes on by
         one alternation per call, so that no frame carries all of it (a live frame has
-        100 ms). Returns the solution (``_solve_steps``) at the call that finishes it, None
-        otherwise.
+        100 ms). Returns the solution (``_JointSolve.result``) at the call that finishes it,
+        None otherwise.
         The solve works on the views as they were when it started; the result arrives
         ``JointParams.iterations`` calls later, always the same for a given recording."""
         if self._job is None:
             if not self.due(t):
                 return None
-            self._job = self._solve_steps(t, priors)
-        if next(self._job, StopIteration) is StopIteration:
-            self._job = None
-            return self._result
-        return None
+            self._last_solve = float(t)
+            self._job = _JointSolve.start(list(self.views), priors, self.params, self.focal)
+            if self._job is None:  # nothing to solve for
+                return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
+        job = self._job
+        job.alternate(self.params, self.focal)
+        if job.done < self.params.iterations:
+            return None
+        self._job = None
+        return job.result()
 
-    def _solve_steps(self, t: float,
-                     priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
-                     ) -> Iterator[None]:
-        """(ids, positions (N,3), covariances (N,3,3)) of the landmarks with
-        ``min_views`` views in the window, from the joint solution, left in ``_result``;
-        yields after each alternation but the last. ``priors(ids)``: each
-        landmark's prior (position, inverse covariance; zero where none) — the same the
-        landmark EKF started from, so a point with little parallax in the window stays near
-        it."""
-        p = self.params
-        self._last_solve = float(t)
-        self._result = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)))
-        views = list(self.views)  # as they are now: views come and go while it runs
+
+@dataclass
+class _JointSolve:
+    """A joint solve under way (``ViewWindow.step``), held as plain arrays rather than a
+    suspended function: an engine copied in the middle of one (a replay's checkpoint) goes
+    on exactly like the original.
+
+    Warm start: the alternation converges slowly along the coupled directions (a rotation of
+    the views against a shift of the points), so each solve goes on from the last one's
+    rotations."""
+
+    views: list[_View]  # as they were at the start: views come and go while it runs
+    ids: np.ndarray  # the landmarks with ``min_views`` views in the window
+    view_of: np.ndarray  # per observation
+    point_of: np.ndarray
+    xy: np.ndarray
+    by_point: _Groups
+    by_view: _Groups
+    centre: np.ndarray  # per view
+    prior: np.ndarray
+    prior_info: np.ndarray
+    few: np.ndarray  # views seeing too few landmarks: they keep their fused attitude
+    x_prior: np.ndarray  # per landmark (``priors``)
+    info_prior: np.ndarray
+    sigma: float  # pixel σ, normalised
+    C: np.ndarray  # the views' rotations so far
+    X: np.ndarray  # the landmarks so far
+    H: np.ndarray  # the rotations' normal matrices
+    done: int = 0  # alternations made
+
+    @staticmethod
+    def start(views: list[_View], priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+              p: JointParams, focal: float) -> _JointSolve | None:
+        """The solve of ``views``; None when no landmark has ``min_views`` views.
+        ``priors(ids)``: each landmark's prior (position, inverse covariance; zero where
+        none) — the same the landmark EKF started from, so a point with little parallax in
+        the window stays near it."""
         if len(views) < 3:
-            return
+            return None
         view_of = np.concatenate([np.full(len(v.ids), k) for k, v in enumerate(views)])
         ids_all = np.concatenate([v.ids for v in views])
         xy = np.concatenate([v.xy for v in views])
         ids, point_of, counts = np.unique(ids_all, return_inverse=True, return_counts=True)
         keep = counts[point_of] >= p.min_views
         if not keep.any():
-            return
+            return None
         ids, point_of = np.unique(ids_all[keep], return_inverse=True)
         view_of, xy = view_of[keep], xy[keep]
-        centre = np.array([v.camera_position_ned for v in views])
-        prior = np.array([v.C_level_to_camera for v in views])
-        prior_info = np.array([v.attitude_info for v in views])
-        by_point = _Groups(point_of, len(ids))
-        by_view = _Groups(view_of, len(views))
-        # Warm start: the alternation converges slowly along the coupled directions (a
-        # rotation of the views against a shift of the points), each solve goes on from the
-        # last one's rotations.
-        C = np.array([v.C_solved for v in views])
-        sigma = p.pixel_sigma_px / self.focal
         x_prior, info_prior = priors(ids)
-        X = x_prior
-        H = np.zeros((len(C), 3, 3))
-        # A view's rotation is only as good as the landmarks it sees.
-        few = np.bincount(view_of, minlength=len(C)) < p.min_view_landmarks
-        for k in range(p.iterations):
-            if k:
-                yield
-            X, _A = _triangulate_rays(C, centre, view_of, point_of, by_point, xy, X,
-                                      1.0 / sigma**2, x_prior, info_prior)
-            C, H = _solve_rotations(C, prior, prior_info, centre, X, view_of, point_of,
-                                    by_view, xy, sigma, self.focal, p.huber_px)
-            C[few] = prior[few]
-            H[few] = prior_info[few]
+        C = np.array([v.C_solved for v in views])
+        return _JointSolve(
+            views, ids, view_of, point_of, xy, _Groups(point_of, len(ids)),
+            _Groups(view_of, len(views)), np.array([v.camera_position_ned for v in views]),
+            np.array([v.C_level_to_camera for v in views]),
+            np.array([v.attitude_info for v in views]),
+            # A view's rotation is only as good as the landmarks it sees.
+            np.bincount(view_of, minlength=len(views)) < p.min_view_landmarks,
+            x_prior, info_prior, p.pixel_sigma_px / focal, C, x_prior,
+            np.zeros((len(C), 3, 3)))
+
+    def alternate(self, p: JointParams, focal: float) -> None:
+        """One alternation: the landmarks from the rotations, then the rotations."""
+        self.X, _A = _triangulate_rays(self.C, self.centre, self.view_of, self.point_of,
+                                       self.by_point, self.xy, self.X, 1.0 / self.sigma**2,
+                                       self.x_prior, self.info_prior)
+        self.C, self.H = _solve_rotations(self.C, self.prior, self.prior_info, self.centre,
+                                          self.X, self.view_of, self.point_of, self.by_view,
+                                          self.xy, self.sigma, focal, p.huber_px)
+        self.C[self.few] = self.prior[self.few]
+        self.H[self.few] = self.prior_info[self.few]
+        self.done += 1
+
+    def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, positions (N,3), covariances (N,3,3)) of the landmarks; the views take their
+        solved rotations and rotation variances."""
         # Each ray's angular variance: the pixel noise plus what is left of its view's
         # rotation uncertainty (small with many landmarks, the fused one with few).
-        rotation_var = np.trace(np.linalg.inv(H), axis1=1, axis2=2) / 3.0
-        for v, c, var in zip(views, C, rotation_var, strict=True):
+        rotation_var = np.trace(np.linalg.inv(self.H), axis1=1, axis2=2) / 3.0
+        for v, c, var in zip(self.views, self.C, rotation_var, strict=True):
             v.C_solved, v.rotation_var = c, float(var)
-        X, A = _triangulate_rays(C, centre, view_of, point_of, by_point, xy, X,
-                                 1.0 / (sigma**2 + rotation_var[view_of]), x_prior, info_prior)
-        self._result = (ids, X, np.linalg.inv(A + 1e-9 * np.eye(3)))
+        X, A = _triangulate_rays(self.C, self.centre, self.view_of, self.point_of,
+                                 self.by_point, self.xy, self.X,
+                                 1.0 / (self.sigma**2 + rotation_var[self.view_of]),
+                                 self.x_prior, self.info_prior)
+        return self.ids, X, np.linalg.inv(A + 1e-9 * np.eye(3))
 
 
 class _Groups:

@@ -322,3 +322,40 @@ def test_sums_by_group_with_empty_groups_anywhere():
     sums = _Groups(group, 5).sum(values)
     np.testing.assert_array_equal(sums[:, 0], [2 + 4, 5, 0, 1 + 3 + 6, 0])
     assert _Groups(np.zeros(0, int), 2).sum(np.zeros((0, 3))).shape == (2, 3)
+
+
+def test_a_map_copied_in_the_middle_of_a_joint_solve_goes_on_like_the_original():
+    """The window's solve runs over several frames (``ViewWindow.step``); a replay's
+    checkpoint may copy the engine between two of them. The copy must be possible (a
+    suspended generator was not) and must finish the solve exactly as the original."""
+    import copy
+
+    from estimator.landmarks import JointParams
+
+    rng = np.random.default_rng(5)
+    n = 200
+    quay = np.column_stack([rng.uniform(22.0, 40.0, n), rng.uniform(0.0, 30.0, n),
+                            rng.uniform(-4.0, -0.5, n)])
+    path = camera_path(120, yaw_rate_deg=0.5)
+    pose_cov = np.diag([0.003**2] * 3 + list(np.radians([0.02, 0.02, 0.1]) ** 2))
+    lm = LandmarkMap(FOCAL, LandmarkParams(pixel_sigma_px=1.0, joint=JointParams()))
+    ids = np.arange(n)
+    lm.seed_from_view(ids, quay + rng.normal(0.0, 0.5, quay.shape), path[0][1])
+    copied = None
+    for k in range(1, len(path)):
+        C, p = path[k]
+        xy = observe(quay, C, p, 0.3, rng)
+        seen = (((quay - p) @ C.T)[:, 2] > 1.0) & (np.abs(xy) < [0.7, 0.44]).all(axis=1)
+        maps = [lm] if copied is None else [lm, copied]
+        for m in maps:
+            m.update(0.1 * k, C, p, pose_cov, ids[seen], xy[seen])
+        if copied is None and lm.window._job is not None and lm.window._job.done == 1:
+            copied = copy.deepcopy(lm)  # one alternation made, two to go
+    assert copied is not None
+    x_a, P_a = lm.best(ids)
+    x_b, P_b = copied.best(ids)
+    assert np.isfinite(lm.x_joint).any()  # solves finished in both
+    np.testing.assert_array_equal(x_a, x_b)
+    np.testing.assert_array_equal(P_a, P_b)
+    np.testing.assert_array_equal(lm.window.solved().C_level_to_camera,
+                                  copied.window.solved().C_level_to_camera)
