@@ -185,10 +185,10 @@ class IntegrityMonitor:
                              "times): its data are not used")
             return False
         self.clear("imu-frozen", t, "IMU samples vary again")
-        rate, force = float(np.linalg.norm(gyro)), float(np.linalg.norm(accel))
+        rate, force = math.hypot(*gyro), math.hypot(*accel)  # 3-vectors: no np.linalg.norm
         spike = prev is not None and (
-            float(np.linalg.norm(gyro - prev[0])) > cfg.max_rate_step
-            or float(np.linalg.norm(accel - prev[1])) > cfg.max_force_step)
+            math.hypot(*(gyro - prev[0])) > cfg.max_rate_step
+            or math.hypot(*(accel - prev[1])) > cfg.max_force_step)
         if rate > cfg.max_rate_rad_s or force > cfg.max_specific_force or spike:
             self.raise_fault("imu-implausible", t, f"IMU sample implausible (|ω| {rate:.2f} "
                              f"rad/s, |f| {force:.1f} m/s²{', a spike' if spike else ''}): "

@@ -504,6 +504,19 @@ def take_templates(image: np.ndarray, centres: np.ndarray, half: int
     return templates, np.linalg.inv(H)
 
 
+def stretches(warps: np.ndarray) -> np.ndarray:
+    """Singular values (N, 2), largest first, of 2x2 ``warps`` (N, 2, 2), in closed form:
+    LAPACK's batched SVD costs a tenth of a millisecond per frame for these."""
+    a, b, c, d = (warps[:, i, j] for i in (0, 1) for j in (0, 1))
+    # σ₁² + σ₂² = |W|²_F and σ₁ σ₂ = |det W|
+    frobenius = a * a + b * b + c * c + d * d
+    det = np.abs(a * d - b * c)
+    spread = np.sqrt(np.maximum(frobenius * frobenius - 4.0 * det * det, 0.0))
+    big = np.sqrt(0.5 * (frobenius + spread))
+    small = np.sqrt(np.maximum(0.5 * (frobenius - spread), 0.0))
+    return np.stack([big, small], axis=1)
+
+
 def align_affine(image: np.ndarray, templates: np.ndarray, h_inv: np.ndarray,
                  centres: np.ndarray, warps: np.ndarray, iterations: int
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -780,7 +793,7 @@ class VisualOdometry:
         centre, warp, ncc = align_affine(image, tr.template[rows], tr.h_inv[rows],
                                          uv[rows].astype(float), tr.warp[rows],
                                          p.template_iterations)
-        stretch = np.linalg.svd(warp, compute_uv=False)
+        stretch = stretches(warp)
         good = ((ncc >= p.template_min_ncc)
                 & (np.linalg.norm(centre - uv[rows], axis=1) <= p.template_max_shift_px)
                 & (stretch[:, 0] < 2.0) & (stretch[:, 1] > 0.5))  # a warp gone wild in a frame
@@ -795,7 +808,7 @@ class VisualOdometry:
         tr, p = self._tracks, self.params
         if not len(tr) or not p.template_check:
             return
-        stretch = np.linalg.svd(np.nan_to_num(tr.warp, nan=0.0), compute_uv=False)
+        stretch = stretches(np.nan_to_num(tr.warp, nan=0.0))
         renew = ((stretch[:, 0] > p.template_max_stretch)
                  | (stretch[:, 1] < 1.0 / p.template_max_stretch))
         if renew.any():
