@@ -537,13 +537,22 @@ def _triangulate_rays(C: np.ndarray, centre: np.ndarray, view_of: np.ndarray,
     Σ w (I − u uᵀ) + prior."""
     rays = np.einsum("nji,nj->ni", C[view_of], np.column_stack([xy, np.ones(len(xy))]))
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    M = np.eye(3) - rays[:, :, None] * rays[:, None, :]
     o = centre[view_of]
-    Mo = np.einsum("nij,nj->ni", M, o)
     w = ray_info / np.maximum(np.linalg.norm(X[point_of] - o, axis=1), 1.0) ** 2
-    A = by_point.sum(w[:, None, None] * M) + info_prior
-    b = by_point.sum(w[:, None] * Mo) + (info_prior @ x_prior[..., None])[..., 0]
+    # Σ w (I − u uᵀ) and Σ w (I − u uᵀ) o by point: Σ w, the six of Σ w u uᵀ and three more
+    wu = w[:, None] * rays
+    sums = by_point.sum(np.column_stack([
+        w, *(wu[:, i] * rays[:, j] for i, j in _PAIRS),
+        w[:, None] * o - wu * np.einsum("ni,ni->n", rays, o)[:, None]]))
+    A = sums[:, 0, None, None] * np.eye(3) - sums[:, 1:7][:, _SYMMETRIC] + info_prior
+    b = sums[:, 7:] + (info_prior @ x_prior[..., None])[..., 0]
     return np.linalg.solve(A + 1e-9 * np.eye(3), b[..., None])[..., 0], A
+
+
+# A symmetric 3x3 matrix from its six distinct entries (``_PAIRS``): sums of outer products
+# by group need only those.
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_SYMMETRIC = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
 
 def _solve_rotations(C: np.ndarray, prior: np.ndarray, prior_info: np.ndarray,
@@ -564,9 +573,11 @@ def _solve_rotations(C: np.ndarray, prior: np.ndarray, prior_info: np.ndarray,
     J1 = np.cross(xc, np.column_stack([zero, inv_z, -h[:, 1] * inv_z])) / sigma
     w = 1.0 / np.maximum(1.0, np.linalg.norm(r, axis=1) * sigma * focal / huber_px)
     w[xc[:, 2] <= 0.3] = 0.0
-    H = by_view.sum(w[:, None, None] * (J0[:, :, None] * J0[:, None, :]
-                                        + J1[:, :, None] * J1[:, None, :]))
-    g = by_view.sum(w[:, None] * (J0 * r[:, :1] + J1 * r[:, 1:]))
+    w0, w1 = w[:, None] * J0, w[:, None] * J1
+    sums = by_view.sum(np.column_stack([*(w0[:, i] * J0[:, j] + w1[:, i] * J1[:, j]
+                                          for i, j in _PAIRS),
+                                        w0 * r[:, :1] + w1 * r[:, 1:]]))
+    H, g = sums[:, :6][:, _SYMMETRIC], sums[:, 6:]  # Σ w (J0 J0ᵀ + J1 J1ᵀ), Σ w Jᵀ r
     # The prior pulls φ towards the (small) rotation from C to its fused value.
     D = prior @ C.transpose(0, 2, 1)
     to_prior = 0.5 * np.stack([D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0],
