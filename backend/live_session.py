@@ -22,13 +22,14 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from engine.driver import FusionEngine, dispatch
+from engine.driver import FusionEngine, dispatch, frame_preparer
 from engine.messages import FrameMessage
 from estimator.integrity import IntegrityConfig
 from estimator.records import ImuData, NavigationData
@@ -85,6 +86,7 @@ class LiveRunner:
         self._to_record: queue.SimpleQueue[tuple[Any, NavigationData | None] | None] = \
             queue.SimpleQueue()
         self._nav_count = -1
+        self._prepare: Callable[[np.ndarray], Any] | None = None  # the engine's prepare_frame
         self._thread = threading.Thread(target=self._run, name="live-session", daemon=True)
         self._pump = threading.Thread(target=self._take_messages, name="live-source",
                                       daemon=True)
@@ -160,6 +162,7 @@ class LiveRunner:
             log.exception("cannot start the fusion engine")
             self._fail(f"cannot start the fusion engine: {exc}")
             return
+        self._prepare = frame_preparer(engine)  # the pump makes it for the frames from now
         with self._lock:
             self._state = ReplayState.PLAYING
         self._notify(ReplayState.PLAYING)
@@ -180,6 +183,8 @@ class LiveRunner:
             msg = self.source.next(0.2)
             if msg is None:
                 continue
+            if isinstance(msg, FrameMessage) and self._prepare is not None:
+                msg = self._prepared(msg)
             with self._arrived:
                 self._queue.append(msg)
                 self._queued_frames += isinstance(msg, FrameMessage)
@@ -191,6 +196,14 @@ class LiveRunner:
                     log.error("live recording stopped: %s", self.recording_error)
                     continue
                 self._to_record.put((msg, self._nav_if_new()))
+
+    def _prepared(self, msg: FrameMessage) -> FrameMessage:
+        """The frame with the engine's ``prepare_frame`` made here, in the pump's thread, off
+        the engine's critical path. Should it fail, the engine makes it (and says why)."""
+        try:
+            return dataclasses.replace(msg, prepared=self._prepare(msg.image))
+        except Exception:  # noqa: BLE001 - the engine's own call reports it
+            return msg
 
     def _nav_if_new(self) -> NavigationData | None:
         """A copy of the ephemerides when the source has assembled new ones (the source's own
