@@ -107,6 +107,7 @@ class Fusion:
         self.frame_check = FrameCheck(opt.integrity)
         self.compass = GnssCompass(nav, self.antennas, elevation_mask_deg=opt.elevation_mask_deg)
         self.vo = VisualOdometry(calibration.camera) if opt.use_vo else None
+        self.last_vo: VoOutput | None = None  # the last VO output given (process_vo)
         self.ins: Ins | None = None
         self.ekf: ErrorStateEkf | None = None
         self.origin: WorldOrigin | None = None
@@ -177,6 +178,9 @@ class Fusion:
         t0 = _time.perf_counter()
         if self.vo is not None:
             t1 = _time.perf_counter()
+            if self.coupling.restart is not None:  # its world was found wrong
+                self.vo.restart(*self.coupling.restart)
+                self.coupling.restart = None
             out = checked_vo(self.vo, self.frame_check, float(t), image, prepared)
             self._timer.add("vo", _time.perf_counter() - t1)
             self.process_vo(out)
@@ -186,6 +190,7 @@ class Fusion:
 
     def process_vo(self, out: VoOutput) -> None:
         """Use one VO output (from ``process_frame`` or the VO run apart) at its time."""
+        self.last_vo = out
         use_vo = self.options.use_vo
         if not self.monitor.vo_frame(float(out.time), out.problem if use_vo else ""):
             return  # its time goes backwards (the monitor says so)

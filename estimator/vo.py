@@ -132,6 +132,9 @@ class VoOutput:
     world_time: float | None = None
     # Why the frame was not used (``integrity.FrameCheck``: black, blinded, frozen), "" if it was.
     problem: str = ""
+    # The id the VO gives its next new feature: a VO restarted in another world goes on from
+    # it, so that no id of an earlier world is reused (``VisualOdometry.restart``).
+    next_id: int = 0
 
 
 # ---------------------------------------------------------------------------- geometry
@@ -741,6 +744,16 @@ class VisualOdometry:
         self._elapsed["total"] += _time.perf_counter() - t_start
         return out
 
+    def restart(self, segment: int, next_id: int) -> None:
+        """Drop the world and the tracks (the fusion found them inconsistent, ``VoCoupling``):
+        the next frame is the reference of world ``segment``, its features numbered from
+        ``next_id`` on. A VO made afresh and restarted so goes on exactly like the one that
+        produced the outputs (the evaluation runs its VO apart, then restarts a fresh one)."""
+        self._segment = int(segment)
+        self._next_id = max(self._next_id, int(next_id))
+        self._new_world()
+        self._prev_gray = None
+
     @property
     def working_size(self) -> tuple[int, int]:
         """(width, height) of the image the VO tracks on (``working_camera``)."""
@@ -892,7 +905,8 @@ class VisualOdometry:
             point_ids=self._map.ids.copy(),
             observations=(self._tracks.id[rows].copy(),
                           to_full_pixels(self._tracks.uv[rows], self.level)),
-            world_time=self._keyframes[0].time if self._keyframes else None)
+            world_time=self._keyframes[0].time if self._keyframes else None,
+            next_id=self._next_id)
 
     def _step(self, time: float, detect: Callable) -> VoOutput:
         self._n_frames += 1

@@ -15,7 +15,10 @@ its direction of travel against the fused track. A VO that departs from them fur
 EKF's own model of its drift allows (a map built on a wrong two-view geometry, rotation traded
 against sideways translation) would drag the fused heading with it. It is then excluded —
 declared ("vo-inconsistent"), its segment dropped from the EKF, the attitude σ widened by what
-it may have pulled — and mapped afresh once it has agreed again for the longest window.
+it may have pulled — and mapped afresh once it has agreed again for the longest window. A VO
+that still disagrees after the longest window is not going to agree: its world is wrong while
+its tracking is fine, so it would never reinitialise by itself. It is restarted
+(``VoCoupling.restart``, taken by ``Fusion``) and its new world checked from scratch.
 """
 
 from __future__ import annotations
@@ -153,6 +156,10 @@ class VoCoupling:
         self.monitor = monitor
         self.consistency: VoConsistency | None = None  # made with the EKF (its VO model)
         self.excluded_since: float | None = None  # gpst of the last disagreement while excluded
+        self._disagreeing_since: float | None = None  # gpst of the exclusion (this world's)
+        # (segment, next_id) the VO must restart with before its next frame, None if not
+        # (``VisualOdometry.restart``; the fusion does it and clears this)
+        self.restart: tuple[int, int] | None = None
         self._anchor: tuple[int, np.ndarray, np.ndarray] | None = None  # segment, p_W, r_cam
         self._points: dict[int, tuple[int, np.ndarray]] = {}  # id → (segment, X_W)
         self.frozen: dict[int, np.ndarray] = {}  # id → L point of ended segments
@@ -221,6 +228,17 @@ class VoCoupling:
                     self.monitor.raise_fault(
                         "vo-inconsistent", t, f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}°"
                         f" off over {bad.window_s:.0f} s: VO excluded")
+            if self._disagreeing_since is None:
+                self._disagreeing_since = t
+            elif t - self._disagreeing_since >= max(VO_CHECK_WINDOWS_S):
+                # still off after the longest window: this world is wrong, start another
+                self.restart = (out.segment + 1, out.next_id)
+                self._disagreeing_since = None
+                if self.monitor is not None:
+                    self.monitor.raise_fault(
+                        "vo-inconsistent", t, f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}°"
+                        f" off over {bad.window_s:.0f} s for {max(VO_CHECK_WINDOWS_S):.0f} s: "
+                        "VO excluded and restarted")
             self.excluded_since = t
             return False
         if not self.excluded:
@@ -229,7 +247,7 @@ class VoCoupling:
         if self.consistency.consistent_for(t) < max(VO_CHECK_WINDOWS_S) \
                 or t - self.excluded_since < max(VO_CHECK_WINDOWS_S):
             return False
-        self.excluded_since = None
+        self.excluded_since = self._disagreeing_since = None
         if self.monitor is not None:
             self.monitor.clear("vo-inconsistent", t, "VO agrees with the gyro and the fused "
                                "track again: mapped afresh")

@@ -3,7 +3,9 @@
 The VO runs ONCE over the video (``engine.driver.run_vo``); every fusion run replays the IMU
 samples, the GNSS epochs and those VO outputs in time order (``recording_messages``) through
 ``dispatch`` — exactly what a session does with the frames — and records the fused state at
-every frame. A run may also keep what the tracking and landmark evaluations need: the port
+every frame. Should the fusion restart the VO (a world it found wrong, ``VoCoupling``), the
+run goes on from that frame with the engine's own VO on the frames, as a session would.
+A run may also keep what the tracking and landmark evaluations need: the port
 structure after every frame from a given one on (the designated targets are followed on it as
 the server follows them), the landmarks' positions as their view counts reach checkpoints, and
 the last view of every landmark.
@@ -12,15 +14,22 @@ the last view of every landmark.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
 import numpy as np
 
-from engine.driver import VoPass, dispatch, is_frame, recording_messages
-from engine.messages import GnssMessage, group_gnss
+from engine.driver import (
+    VoFrameMessage,
+    VoPass,
+    dispatch,
+    frame_preparer,
+    is_frame,
+    recording_messages,
+)
+from engine.messages import FrameMessage, GnssMessage, SensorMessage, group_gnss, sensor_messages
 from engine.targets import Structure
 from estimator.integrity import Alert
 from estimator.pipeline import Fusion, FusionOptions
@@ -84,7 +93,13 @@ def fuse(rec: Recording, vo: VoPass, options: FusionOptions, label: str, until: 
     history = _ViewHistory() if collect.landmarks else None
     last_views: dict[int, tuple[int, np.ndarray]] = {}
     tic = time.perf_counter()
-    for msg in recording_messages(rec, until=until, vo=frames):
+    messages = iter(recording_messages(rec, until=until, vo=frames))
+    while (msg := next(messages, None)) is not None:
+        if isinstance(msg, VoFrameMessage) and engine.coupling.restart is not None:
+            # The fusion restarts the VO (its world was found wrong): the cached outputs are
+            # no longer this run's. From this frame on the engine runs its own VO on the
+            # frames, restarted as the live engine's would be.
+            msg, messages = _own_vo_from(rec, engine, msg, until)
         state = dispatch(engine, msg)
         if not is_frame(msg):
             continue
@@ -94,8 +109,8 @@ def fuse(rec: Recording, vo: VoPass, options: FusionOptions, label: str, until: 
             structures[k] = Structure.of(engine, msg.t)
         if history is not None:
             history.add(engine)
-            if k % TRUTH_STRIDE == 0:
-                for pid, uv in zip(*frames[k].observations, strict=True):
+            if k % TRUTH_STRIDE == 0 and engine.last_vo is not None:
+                for pid, uv in zip(*engine.last_vo.observations, strict=True):
                     last_views[int(pid)] = (k, np.asarray(uv, float))
     run = FusionRun(label, np.array([o.time for o in frames], float), states,
                     engine.origin_time, time.perf_counter() - tic, dict(engine.timing()),
@@ -107,6 +122,14 @@ def fuse(rec: Recording, vo: VoPass, options: FusionOptions, label: str, until: 
     if history is not None:
         run.view_history = history.result()
     return run
+
+
+def _own_vo_from(rec: Recording, engine: Fusion, msg: VoFrameMessage, until: float
+                 ) -> tuple[FrameMessage, Iterator[SensorMessage]]:
+    """Frame ``msg`` as a real frame, and the recording's messages after it with frames."""
+    frame = FrameMessage(msg.t, msg.index, rec.read_frame(msg.index))
+    return frame, sensor_messages(rec, after=msg.t, until=until,
+                                  prepare=frame_preparer(engine))
 
 
 class _ViewHistory:
