@@ -378,7 +378,8 @@ class Fusion:
                                 self.origin, self.front)
             self._timer.add("gnss_update", _time.perf_counter() - t0)
         else:
-            self.coupling.update(item.payload, self.ekf, self._timer.add)  # type: ignore[arg-type]
+            self.coupling.update(item.payload, self.ekf,  # type: ignore[arg-type]
+                                 self._timer.add, self.carrier.carrier_fresh(self.ekf.time))
             self._timer.add("vo_update", _time.perf_counter() - t0)
 
     # -------------------------------------------------------------------- INS start

@@ -16,9 +16,10 @@ EKF's own model of its drift allows (a map built on a wrong two-view geometry, r
 against sideways translation) would drag the fused heading with it. It is then excluded —
 declared ("vo-inconsistent"), its segment dropped from the EKF, the attitude σ widened by what
 it may have pulled — and mapped afresh once it has agreed again for the longest window. A VO
-that still disagrees after the longest window is not going to agree: its world is wrong while
-its tracking is fine, so it would never reinitialise by itself. It is restarted
-(``VoCoupling.restart``, taken by ``Fusion``) and its new world checked from scratch.
+that still disagrees ``VO_RESTART_AFTER_S`` later with the carrier phase behind the fused track
+is not going to agree: its world is wrong while its tracking is fine, so it would never
+reinitialise by itself. It is restarted (``VoCoupling.restart``, taken by ``Fusion``) and its
+new world checked from scratch.
 """
 
 from __future__ import annotations
@@ -49,6 +50,10 @@ MIN_TRAVEL_M = 1.0  # the direction of travel is checked over windows with this 
 # A VO found inconsistent may have pulled the fused attitude by as much as it disagrees, but
 # no more than this (a direction of travel tens of degrees off moves the heading degrees).
 MAX_PULL_DEG = 3.0
+# A VO still disagreeing this long after it was excluded has a wrong world (a marginal one
+# agrees again sooner): it is restarted, if the fused track it disagrees with rests on the
+# carrier phase (coasting on the INS, the fused track is the doubtful one).
+VO_RESTART_AFTER_S = 15.0
 
 
 @dataclass(frozen=True)
@@ -175,16 +180,17 @@ class VoCoupling:
     # ---------------------------------------------------------------------------- input
 
     def update(self, out: VoOutput, ekf: ErrorStateEkf,
-               timed: Callable[[str, float], None]) -> None:
+               timed: Callable[[str, float], None], carrier_fresh: bool = True) -> None:
         """One VO output at its time (the INS is there): map a new segment, or update the
-        EKF with Θ and d and the landmarks with the views."""
+        EKF with Θ and d and the landmarks with the views. ``carrier_fresh``: the fused track
+        rests on the carrier phase now (a wrong VO world may then be restarted)."""
         if out.status != "tracking" or out.C_world_to_camera is None \
                 or out.camera_position_world is None:
             if out.status == "lost":
                 self.freeze_segment(ekf)
                 self._anchor = None
             return
-        if not self._consistent(out, ekf):
+        if not self._consistent(out, ekf, carrier_fresh):
             return
         for pid, X in zip(out.point_ids, out.points_world, strict=True):
             self._points[int(pid)] = (out.segment, np.asarray(X, float))
@@ -202,7 +208,7 @@ class VoCoupling:
     def excluded(self) -> bool:
         return self.excluded_since is not None
 
-    def _consistent(self, out: VoOutput, ekf: ErrorStateEkf) -> bool:
+    def _consistent(self, out: VoOutput, ekf: ErrorStateEkf, carrier_fresh: bool) -> bool:
         """Check the VO against the gyro and the fused track (module docstring): False while
         it is excluded."""
         if self.consistency is None:
@@ -230,15 +236,14 @@ class VoCoupling:
                         f" off over {bad.window_s:.0f} s: VO excluded")
             if self._disagreeing_since is None:
                 self._disagreeing_since = t
-            elif t - self._disagreeing_since >= max(VO_CHECK_WINDOWS_S):
-                # still off after the longest window: this world is wrong, start another
-                self.restart = (out.segment + 1, out.next_id)
+            elif t - self._disagreeing_since >= VO_RESTART_AFTER_S and carrier_fresh:
+                self.restart = (out.segment + 1, out.next_id)  # this world is wrong
                 self._disagreeing_since = None
                 if self.monitor is not None:
                     self.monitor.raise_fault(
                         "vo-inconsistent", t, f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}°"
-                        f" off over {bad.window_s:.0f} s for {max(VO_CHECK_WINDOWS_S):.0f} s: "
-                        "VO excluded and restarted")
+                        f" off over {bad.window_s:.0f} s, {VO_RESTART_AFTER_S:.0f} s after it "
+                        "was excluded: VO restarted")
             self.excluded_since = t
             return False
         if not self.excluded:

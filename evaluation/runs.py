@@ -33,6 +33,7 @@ from engine.messages import FrameMessage, GnssMessage, SensorMessage, group_gnss
 from engine.targets import Structure
 from estimator.integrity import Alert
 from estimator.pipeline import Fusion, FusionOptions
+from estimator.vo import VoOutput
 from recordings.format import Recording
 
 VIEW_CHECKPOINTS = (1, 2, 3, 5, 10, 20, 50, 100, 200, 400)
@@ -58,6 +59,9 @@ class FusionRun:
     view_history: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     last_views: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)  # id → (k, uv)
     alerts: list[Alert] = field(default_factory=list)  # the engine's faults, raised and cleared
+    # The VO output the run used at each frame: the cached pass's, or its own VO's from a
+    # restart on (``_own_vo_from``); empty for runs made otherwise.
+    vo_outputs: list[Any] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         n = len(self.time)
@@ -89,6 +93,7 @@ def fuse(rec: Recording, vo: VoPass, options: FusionOptions, label: str, until: 
     engine = Fusion(rec.calibration, rec.nav, options)
     frames = [o for o in vo.outputs if o.time <= until]
     states: list[Any] = [None] * len(frames)
+    used_vo: list[VoOutput | None] = [None] * len(frames)
     structures: dict[int, Structure] = {}
     history = _ViewHistory() if collect.landmarks else None
     last_views: dict[int, tuple[int, np.ndarray]] = {}
@@ -105,6 +110,7 @@ def fuse(rec: Recording, vo: VoPass, options: FusionOptions, label: str, until: 
             continue
         k = msg.index
         states[k] = state
+        used_vo[k] = engine.last_vo
         if collect.structures_from is not None and k >= collect.structures_from:
             structures[k] = Structure.of(engine, msg.t)
         if history is not None:
@@ -114,7 +120,8 @@ def fuse(rec: Recording, vo: VoPass, options: FusionOptions, label: str, until: 
                     last_views[int(pid)] = (k, np.asarray(uv, float))
     run = FusionRun(label, np.array([o.time for o in frames], float), states,
                     engine.origin_time, time.perf_counter() - tic, dict(engine.timing()),
-                    structures=structures, last_views=last_views, alerts=engine.alerts())
+                    structures=structures, last_views=last_views, alerts=engine.alerts(),
+                    vo_outputs=used_vo)
     if engine.origin_time is not None:
         run.structure = engine.structure()
         run.structure_raw = engine.structure(refined=False)
