@@ -202,7 +202,15 @@ def test_designate_targets_and_berth_line(live: Live, replayed: dict):
     with httpx.Client(base_url=live.url) as client:
         points = last["overlay"]["video"]["points"]
         assert points["uv"], "no structure point visible in the last frame"
-        k = int(np.argsort(points["distance_m"])[len(points["distance_m"]) // 2])
+        # the point at the median distance among those an image tracker's window fits around
+        # (at the very edge the window does not fit: the target is kept, its tracking lost)
+        uv_all = np.asarray(points["uv"], float)
+        w, h = live.rec.calibration.camera.width, live.rec.calibration.camera.height
+        inner = np.flatnonzero((uv_all[:, 0] > 40) & (uv_all[:, 0] < w - 40)
+                               & (uv_all[:, 1] > 40) & (uv_all[:, 1] < h - 40))
+        assert len(inner), "no structure point away from the image edges"
+        dist = np.asarray(points["distance_m"])[inner]
+        k = int(inner[np.argsort(dist)[len(dist) // 2]])
         u, v = points["uv"][k]
         r = client.post(f"{base}/targets", json={"frame_time": last["t"], "u": u, "v": v,
                                                  "label": "quay"})

@@ -336,8 +336,8 @@ def test_end_to_end_with_rendered_frames(sim):
     outputs: dict[float, VoOutput] = {}
     process = f.vo.process
 
-    def spy(t: float, image: np.ndarray) -> VoOutput:  # keep the raw VO outputs for scoring
-        outputs[t] = process(t, image)
+    def spy(t: float, image: np.ndarray, prepared: object = None) -> VoOutput:
+        outputs[t] = process(t, image, prepared)  # keep the raw VO outputs for scoring
         return outputs[t]
 
     f.vo.process = spy
