@@ -416,7 +416,7 @@ class ViewWindow:
             if self._job is None:  # nothing to solve for
                 return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
         job = self._job
-        job.alternate(self.params, self.focal)
+        job.alternate()
         if job.done < self.params.iterations:
             return None
         self._job = None
@@ -447,6 +447,8 @@ class _JointSolve:
     x_prior: np.ndarray  # per landmark (``priors``)
     info_prior: np.ndarray
     sigma: float  # pixel σ, normalised
+    focal: float  # px
+    huber_px: float
     C: np.ndarray  # the views' rotations so far
     X: np.ndarray  # the landmarks so far
     H: np.ndarray  # the rotations' normal matrices
@@ -479,17 +481,17 @@ class _JointSolve:
             np.array([v.attitude_info for v in views]),
             # A view's rotation is only as good as the landmarks it sees.
             np.bincount(view_of, minlength=len(views)) < p.min_view_landmarks,
-            x_prior, info_prior, p.pixel_sigma_px / focal, C, x_prior,
+            x_prior, info_prior, p.pixel_sigma_px / focal, focal, p.huber_px, C, x_prior,
             np.zeros((len(C), 3, 3)))
 
-    def alternate(self, p: JointParams, focal: float) -> None:
+    def alternate(self) -> None:
         """One alternation: the landmarks from the rotations, then the rotations."""
         self.X, _A = _triangulate_rays(self.C, self.centre, self.view_of, self.point_of,
                                        self.by_point, self.xy, self.X, 1.0 / self.sigma**2,
                                        self.x_prior, self.info_prior)
         self.C, self.H = _solve_rotations(self.C, self.prior, self.prior_info, self.centre,
                                           self.X, self.view_of, self.point_of, self.by_view,
-                                          self.xy, self.sigma, focal, p.huber_px)
+                                          self.xy, self.sigma, self.focal, self.huber_px)
         self.C[self.few] = self.prior[self.few]
         self.H[self.few] = self.prior_info[self.few]
         self.done += 1

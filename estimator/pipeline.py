@@ -166,6 +166,12 @@ class Fusion:
             self._schedule(_Pending(t, "gnss", epochs))
         self._timer.add("gnss", _time.perf_counter() - t0)
 
+    @property
+    def vo_restart_due(self) -> bool:
+        """Whether the VO is restarted before its next frame (its world was found wrong):
+        outputs of a VO run apart are no longer this engine's from that frame on."""
+        return self.coupling.restart is not None
+
     def prepare_frame(self, image: np.ndarray) -> WorkingImage | None:
         """What ``process_frame`` will need of ``image`` and may be made ahead, in a frame
         reader's thread (the VO's ``prepare``: pure, no state touched); None without a VO."""
@@ -178,7 +184,7 @@ class Fusion:
         t0 = _time.perf_counter()
         if self.vo is not None:
             t1 = _time.perf_counter()
-            if self.coupling.restart is not None:  # its world was found wrong
+            if self.coupling.restart is not None:  # its world was found wrong (vo_restart_due)
                 self.vo.restart(*self.coupling.restart)
                 self.coupling.restart = None
             out = checked_vo(self.vo, self.frame_check, float(t), image, prepared)

@@ -221,6 +221,7 @@ class VoCoupling:
             ekf.camera_attitude(), ekf.camera_position(),
             math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0))))
         if bad is not None:
+            off = f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}° off over {bad.window_s:.0f} s"
             if not self.excluded:
                 # What it may have pulled the attitude by: widen the attitude σ so much. A
                 # rotation the gyro disagrees with may be the gyro's fault (a bias step) as
@@ -231,9 +232,7 @@ class VoCoupling:
                             if bad.what == "rotation" else 0.0)
                 self._drop_segment(ekf)
                 if self.monitor is not None:
-                    self.monitor.raise_fault(
-                        "vo-inconsistent", t, f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}°"
-                        f" off over {bad.window_s:.0f} s: VO excluded")
+                    self.monitor.raise_fault("vo-inconsistent", t, f"{off}: VO excluded")
             if self._disagreeing_since is None:
                 self._disagreeing_since = t
             elif t - self._disagreeing_since >= VO_RESTART_AFTER_S and carrier_fresh:
@@ -241,9 +240,8 @@ class VoCoupling:
                 self._disagreeing_since = None
                 if self.monitor is not None:
                     self.monitor.raise_fault(
-                        "vo-inconsistent", t, f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}°"
-                        f" off over {bad.window_s:.0f} s, {VO_RESTART_AFTER_S:.0f} s after it "
-                        "was excluded: VO restarted")
+                        "vo-inconsistent", t, f"{off}, {VO_RESTART_AFTER_S:.0f} s after it was "
+                        "excluded: VO restarted")
             self.excluded_since = t
             return False
         if not self.excluded:

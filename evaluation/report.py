@@ -298,8 +298,7 @@ def vo_alone(rs: RunSet, main: FusionRun, t0: float) -> tuple[FusionRun, dict[st
     from a restart on the run's own (a scale belongs to its world)."""
     cam = rs.rec.calibration.camera
     C_cb, lever = np.asarray(cam.C_camera_to_body, float), np.asarray(cam.lever_arm_body, float)
-    outs = [o if o is not None else p for o, p in zip(main.vo_outputs, rs.vo.outputs,
-                                                     strict=False)] or rs.vo.outputs
+    outs = main.vo_outputs or rs.vo.outputs
     n = len(main.time)
     run = FusionRun("VO", main.time, [None] * n, main.origin_time, 0.0, {})
     k0 = next((k for k in range(n) if main.time[k] >= t0 - 1e-6 and outs[k].status == "tracking"

@@ -98,9 +98,9 @@ def fuse(rec: Recording, vo: VoPass, options: FusionOptions, label: str, until: 
     history = _ViewHistory() if collect.landmarks else None
     last_views: dict[int, tuple[int, np.ndarray]] = {}
     tic = time.perf_counter()
-    messages = iter(recording_messages(rec, until=until, vo=frames))
+    messages = recording_messages(rec, until=until, vo=frames)
     while (msg := next(messages, None)) is not None:
-        if isinstance(msg, VoFrameMessage) and engine.coupling.restart is not None:
+        if isinstance(msg, VoFrameMessage) and engine.vo_restart_due:
             # The fusion restarts the VO (its world was found wrong): the cached outputs are
             # no longer this run's. From this frame on the engine runs its own VO on the
             # frames, restarted as the live engine's would be.
