@@ -261,29 +261,60 @@ def triangulate_point(C_level_to_camera: np.ndarray, camera_position_ned: np.nda
 
 def common_rotation_jacobian(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
                              xy: np.ndarray, ray_var: np.ndarray, X: np.ndarray,
-                             x_prior: np.ndarray, info_prior: np.ndarray, step: float = 1e-3,
-                             iterations: int = 3) -> np.ndarray:
+                             x_prior: np.ndarray, info_prior: np.ndarray, step: float = 1e-3
+                             ) -> np.ndarray:
     """d(point)/d(e): how the point triangulated from these views (``triangulate_point``'s
     used ones) moves when all their attitudes share a small-angle error ``e`` (in L,
     ``Ĉ = (I + [e×]) C`` as the EKF has it). The structure window keeps the fused common
     rotation, so the fused attitude's error is common to every view: no number of views
     averages it out, and ``J P_e Jᵀ`` belongs in the point's covariance."""
     C = np.asarray(C_level_to_camera, float).reshape(-1, 3, 3)
-    n = len(C)
-    point_of = np.zeros(n, np.int64)
-    x0 = np.asarray(x_prior, float).reshape(1, 3)
-    info0 = np.asarray(info_prior, float).reshape(1, 3, 3)
     J = np.zeros((3, 3))
     for k in range(3):
         e = np.zeros(3)
         e[k] = step
-        Ck = C @ (np.eye(3) - skew(e))  # rays in L turned by (I + [e×])
-        Xk = np.asarray(X, float).reshape(1, 3)
-        for _ in range(iterations):
-            Xk, _ = _triangulate_rays(Ck, camera_position_ned, np.arange(n), point_of,
-                                      _Groups(point_of, 1), xy, Xk, 1.0 / ray_var, x0, info0)
-        J[:, k] = (Xk[0] - np.asarray(X, float)) / step
+        J[:, k] = (_retriangulated(C @ (np.eye(3) - skew(e)), camera_position_ned, xy, ray_var,
+                                   X, x_prior, info_prior) - X) / step
     return J
+
+
+def common_drift_jacobian(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                          xy: np.ndarray, ray_var: np.ndarray, X: np.ndarray,
+                          x_prior: np.ndarray, info_prior: np.ndarray, dt: np.ndarray,
+                          step: float = 1e-4) -> np.ndarray:
+    """d(point)/d(w), (3,2): how the point triangulated from one tracked pixel's views moves
+    when the track drifts at a common rate ``w`` (normalised image units per second) from
+    its reference view: view k off by ``w dt[k]``. An image tracker's drift (a template
+    sliding as the target grows or shrinks) is common to the views and grows with their
+    distance in time from where the template was taken, where the parallax is: no number
+    of views averages it out, and ``J Q Jᵀ`` (Q: the drift rate's covariance) belongs in
+    the point's covariance."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    dt = np.asarray(dt, float).reshape(-1, 1)
+    J = np.zeros((3, 2))
+    for k in range(2):
+        w = np.zeros(2)
+        w[k] = step
+        J[:, k] = (_retriangulated(C_level_to_camera, camera_position_ned, xy + dt * w,
+                                   ray_var, X, x_prior, info_prior) - X) / step
+    return J
+
+
+def _retriangulated(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                    xy: np.ndarray, ray_var: np.ndarray, X: np.ndarray, x_prior: np.ndarray,
+                    info_prior: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """The point of these views (all used) from ``X`` on: the common-error Jacobians'
+    perturbed solve."""
+    C = np.asarray(C_level_to_camera, float).reshape(-1, 3, 3)
+    n = len(C)
+    point_of = np.zeros(n, np.int64)
+    x0 = np.asarray(x_prior, float).reshape(1, 3)
+    info0 = np.asarray(info_prior, float).reshape(1, 3, 3)
+    Xk = np.asarray(X, float).reshape(1, 3)
+    for _ in range(iterations):
+        Xk, _ = _triangulate_rays(C, camera_position_ned, np.arange(n), point_of,
+                                  _Groups(point_of, 1), xy, Xk, 1.0 / ray_var, x0, info0)
+    return Xk[0]
 
 
 def _consensus_on_prior_axis(x0: np.ndarray, info0: np.ndarray, rays: np.ndarray,

@@ -72,6 +72,7 @@ from .landmarks import (
     LandmarkMap,
     LandmarkParams,
     SolvedViews,
+    common_drift_jacobian,
     common_rotation_jacobian,
     converged,
     ray_prior,
@@ -583,6 +584,13 @@ class TargetParams:
     # along the line of sight does not. Further back a template can slip to a neighbouring
     # feature unnoticed (default recording: the first slips 25 and 33 s back).
     track_back_s: float = 20.0
+    # Slow errors the views share, 1-σ rates (px/s at 960 px of image width) of a drift
+    # common to them (``refine``: no number of views averages it out). Every view: the
+    # solved attitudes' error wanders by ~0.1° over 30 s. While the track is unanchored
+    # (its first template not aligned): the template slides as the target grows or
+    # shrinks, by a few pixels over tens of seconds.
+    view_drift_px_per_s: float = 0.1
+    unanchored_drift_px_per_s: float = 0.25
     # The target's landmark EKF: the tracker's pixel noise, never dropped (the tracker is
     # declared lost instead), the click's ray prior from the structure points' spread.
     landmark: LandmarkParams = field(default_factory=lambda: LandmarkParams(
@@ -703,12 +711,14 @@ def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: n
 
 class _SeenViews:
     """A designated target's tracked views, in time order: time, undistorted normalised
-    pixel, and — once the structure's joint window has solved the view of that time — its
+    pixel, the seconds the track had gone unanchored by then (``DesignatedTarget.drift_s``)
+    and — once the structure's joint window has solved the view of that time — its
     attitude, camera centre and rotation variance (NaN before)."""
 
     def __init__(self) -> None:
         self.t = np.zeros(0)
         self.xy = np.zeros((0, 2))
+        self.drift_s = np.zeros(0)
         self.C = np.zeros((0, 3, 3))
         self.centre = np.zeros((0, 3))
         self.rotation_var = np.zeros(0)
@@ -716,7 +726,7 @@ class _SeenViews:
     def __len__(self) -> int:
         return len(self.t)
 
-    def add(self, t: np.ndarray, xy: np.ndarray) -> None:
+    def add(self, t: np.ndarray, xy: np.ndarray, drift_s: np.ndarray) -> None:
         """Views at times ``t`` (increasing); those at or after ``t[0]`` are dropped first
         (a seek back replays them)."""
         t = np.asarray(t, float).reshape(-1)
@@ -726,12 +736,14 @@ class _SeenViews:
         n = len(t)
         self.t = np.concatenate([self.t, t])
         self.xy = np.concatenate([self.xy, np.asarray(xy, float).reshape(n, 2)])
+        self.drift_s = np.concatenate([self.drift_s, np.asarray(drift_s, float).reshape(n)])
         self.C = np.concatenate([self.C, np.full((n, 3, 3), np.nan)])
         self.centre = np.concatenate([self.centre, np.full((n, 3), np.nan)])
         self.rotation_var = np.concatenate([self.rotation_var, np.full(n, np.nan)])
 
     def keep(self, mask: np.ndarray) -> None:
         self.t, self.xy, self.C = self.t[mask], self.xy[mask], self.C[mask]
+        self.drift_s = self.drift_s[mask]
         self.centre, self.rotation_var = self.centre[mask], self.rotation_var[mask]
 
     def take(self, views: SolvedViews) -> np.ndarray:
@@ -803,9 +815,13 @@ class DesignatedTarget:
         # ``refine`` triangulates in (``common_rotation_jacobian``)
         self.attitude_cov: np.ndarray | None = None
         self.seen = _SeenViews()
+        # Seconds the forward track has gone without its first template's alignment
+        # (``TargetTracker._anchor``) since the click: how far it may have drifted.
+        self.drift_s = 0.0
+        self._last_view_t = t
         if refine and math.isfinite(t):
             self._track_back(image, np.asarray(uv, float), t, earlier_frames)
-        self._view(np.asarray(uv, float), view)
+        self._view(np.asarray(uv, float), view, anchored=True)
         self.map.views[:] = 0  # the click is not a tracked view (for the EKF's count)
         self.disagreements = 0
         self.status = "tracking"
@@ -868,6 +884,7 @@ class DesignatedTarget:
         pred = self.project(view.C_level_to_camera, view.position_ned)
         h, w = image.shape[:2]
         in_view = pred is not None and -0.5 <= pred[0] <= w - 0.5 and -0.5 <= pred[1] <= h - 0.5
+        anchored = self.tracker.anchored
         res = self.tracker.update(image)
         reason, reacquired = res.reason, False
         if (res.status == "tracking" and self.status == "lost" and pred is not None
@@ -886,7 +903,8 @@ class DesignatedTarget:
             reacquired = res.status == "tracking"
             self.reacquisitions += int(reacquired)
             reason = res.reason if not reacquired else "re-acquired at the projected 3-D point"
-        return self._state(res, reason, reacquired, pred if in_view else None, view)
+        return self._state(res, reason, reacquired, pred if in_view else None, view,
+                           self.tracker.anchored > anchored)
 
     def resume(self, image: np.ndarray, view: CameraView) -> TargetState:
         """Continue on a frame that does not follow the last one (a seek, skipped frames):
@@ -902,15 +920,16 @@ class DesignatedTarget:
         reacquired = res.status == "tracking"
         self.reacquisitions += int(reacquired)
         reason = "re-acquired at the projected 3-D point" if reacquired else res.reason
-        return self._state(res, reason, reacquired, pred if in_view else None, view)
+        return self._state(res, reason, reacquired, pred if in_view else None, view, False)
 
     def _state(self, res: TrackResult, reason: str, reacquired: bool, pred: np.ndarray | None,
-               view: CameraView) -> TargetState:
-        """Feed a tracked view to the 3-D point (χ²-checked) and form the target's state."""
+               view: CameraView, anchored: bool) -> TargetState:
+        """Feed a tracked view to the 3-D point (χ²-checked) and form the target's state;
+        ``anchored``: the tracker aligned its first template on this frame."""
         p = self.params
         uv = None
         if res.status == "tracking" and res.uv is not None:
-            ok = self._view(res.uv, view) if self.refines else True
+            ok = self._view(res.uv, view, anchored) if self.refines else True
             self.disagreements = 0 if ok else self.disagreements + 1
             if self.disagreements >= p.max_disagreement:
                 self.tracker.status = "lost"
@@ -985,12 +1004,19 @@ class DesignatedTarget:
         if n < self.params.min_refine_views or not np.isfinite(X).all():
             return 0
         P = np.linalg.inv(info)
+        u = rows[used]
+        common = (seen.C[u], seen.centre[u], seen.xy[u], pixel_var + seen.rotation_var[u], X,
+                  X0, np.linalg.inv(P0))
         if self.attitude_cov is not None:
-            u = rows[used]
-            J = common_rotation_jacobian(seen.C[u], seen.centre[u], seen.xy[u],
-                                         pixel_var + seen.rotation_var[u], X, X0,
-                                         np.linalg.inv(P0))
+            J = common_rotation_jacobian(*common)
             P = P + J @ self.attitude_cov @ J.T
+        # The views' slow common drifts (``TargetParams.view_drift_px_per_s``,
+        # ``unanchored_drift_px_per_s``): from the click, and while the track is unanchored.
+        px = float(self.camera.width) / 960.0 / self.map.focal  # normalised units of 1 px
+        for rate, dt in ((self.params.view_drift_px_per_s, seen.t[u] - self.click_time),
+                         (self.params.unanchored_drift_px_per_s, seen.drift_s[u])):
+            J = common_drift_jacobian(*common, dt)
+            P = P + (rate * px) ** 2 * (J @ J.T)
         self.map.x[0], self.map.P[0] = X, P
         self.refined_views = n
         return n
@@ -1003,22 +1029,32 @@ class DesignatedTarget:
         back = TargetTracker(method="template")
         back.init(_gray(image), uv, self.params.window)
         seen = []
+        drift_s, t_prev = 0.0, t  # unanchored seconds, counted back from the click (< 0)
         for t_k, img in reversed(earlier_frames):
             if not t - self.params.track_back_s <= t_k < t:
                 continue
+            anchored = back.anchored
             res = back.follow_flow(img)
             if res.status != "tracking" or res.uv is None:
                 break
-            seen.append((float(t_k), res.uv))
+            drift_s = 0.0 if back.anchored > anchored else drift_s - (t_prev - float(t_k))
+            t_prev = float(t_k)
+            seen.append((t_prev, res.uv, drift_s))
         if seen:
-            uvs = np.array([q for _, q in seen[::-1]], np.float64).reshape(-1, 1, 2)
-            self.seen.add(np.array([tk for tk, _ in seen[::-1]]),
-                          cv2.undistortPoints(uvs, self._K, self._dist).reshape(-1, 2))
+            seen.reverse()
+            uvs = np.array([q for _, q, _ in seen], np.float64).reshape(-1, 1, 2)
+            self.seen.add(np.array([tk for tk, _, _ in seen]),
+                          cv2.undistortPoints(uvs, self._K, self._dist).reshape(-1, 2),
+                          np.array([d for _, _, d in seen]))
 
-    def _view(self, uv: np.ndarray, view: CameraView) -> bool:
+    def _view(self, uv: np.ndarray, view: CameraView, anchored: bool) -> bool:
         """One tracked view of the 3-D point (kept for ``refine``); False when its χ² gate
-        rejects it."""
+        rejects it. ``anchored``: on the first template's alignment (no drift)."""
         C, c, pose_cov, t = view.C_level_to_camera, view.position_ned, view.pose_cov, view.t
+        if math.isfinite(t):
+            step = t - self._last_view_t if math.isfinite(self._last_view_t) else 0.0
+            self.drift_s = 0.0 if anchored else self.drift_s + max(step, 0.0)
+            self._last_view_t = t
         if pose_cov is not None:
             self.attitude_cov = np.asarray(pose_cov, float)[3:, 3:]
         xy = cv2.undistortPoints(np.asarray(uv, np.float64).reshape(1, 1, 2), self._K,
@@ -1029,7 +1065,7 @@ class DesignatedTarget:
             self.map.x[0], self.map.P[0] = kept
         ok = out.gated == 0
         if ok and self.refines and math.isfinite(t):
-            self.seen.add(np.array([t]), xy)
+            self.seen.add(np.array([t]), xy, np.array([self.drift_s]))
         return ok
 
 
