@@ -141,10 +141,11 @@ class IntegrityMonitor:
 
     # ------------------------------------------------------------------------ register
 
-    def raise_fault(self, kind: str, t: float, message: str) -> None:
-        """A fault (again): recorded once until it clears; its message kept current."""
+    def raise_fault(self, kind: str, t: float, message: str, news: bool = False) -> None:
+        """A fault (again): recorded once until it clears; its message kept current.
+        ``news``: what the engine did about an active fault (a restart): recorded too."""
         alert = Alert(float(t), kind, message)
-        if kind not in self.active:
+        if kind not in self.active or news:
             self.alerts.append(alert)
         self.active[kind] = alert if kind not in self.active else \
             Alert(self.active[kind].t, kind, message)

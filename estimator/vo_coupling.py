@@ -241,7 +241,7 @@ class VoCoupling:
                 if self.monitor is not None:
                     self.monitor.raise_fault(
                         "vo-inconsistent", t, f"{off}, {VO_RESTART_AFTER_S:.0f} s after it was "
-                        "excluded: VO restarted")
+                        "excluded: VO restarted", news=True)
             self.excluded_since = t
             return False
         if not self.excluded:

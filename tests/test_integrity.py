@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from backend.alarms import AlarmBook
 from engine.driver import VoPass, run_vo
 from estimator.integrity import FrameCheck, IntegrityConfig, IntegrityMonitor
 from estimator.pipeline import FusionOptions
@@ -285,6 +286,15 @@ def test_a_vo_whose_world_stays_wrong_is_restarted_and_taken_back_once_it_agrees
     assert restarted and min(restarted) >= raised[0] + VO_RESTART_AFTER_S, status
     assert all(v == "tracking" for t, v in status.items() if t > cleared[0]), status
     assert {o.segment for o in run.vo_outputs[-10:]} == {1}  # the restarted VO's world
+    # The restart is its own entry in the history, and the officer's alarm says it.
+    restart = [a for a in run.alerts if a.active and "VO restarted" in a.message]
+    assert len(restart) == 1 and restart[0].t - start >= raised[0] + VO_RESTART_AFTER_S
+    k = int(np.searchsorted(run.time, restart[0].t))
+    book = AlarmBook(start)
+    book.update(run.states[k], [a for a in run.alerts if a.t <= restart[0].t])
+    alarm = [a for a in book.all() if a["kind"] == "vo-inconsistent"]
+    assert len(alarm) == 1 and alarm[0]["active"] and "VO restarted" in alarm[0]["message"]
+    assert alarm[0]["since_s"] == pytest.approx(raised[0], abs=1e-3)  # the fault's start
     ig = integrity_scores(rec, run, start + 3.0, end - start)
     assert ig.misleading_epochs == 0, ig
 
