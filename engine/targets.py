@@ -69,6 +69,7 @@ class Designation:
     method: str  # "structure" | "water-plane"
     anchor_ids: np.ndarray  # structure point ids under the click (empty for water-plane)
     anchor_mean: np.ndarray | None  # their mean position
+    water_down_m: float | None = None  # the water plane's down (m) when it is known
 
 
 def camera_view(state: Any, camera: CameraCalibration) -> CameraView:
@@ -100,7 +101,7 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
         if found is not None:
             point, cov, near = found
             return Designation(point, cov, "structure", np.asarray(structure.ids)[near],
-                               structure.points[near].mean(axis=0))
+                               structure.points[near].mean(axis=0), water_down_m)
     hit = None if water_down_m is None else \
         water_plane_point(pose.position_ned, ray, water_down_m)
     if hit is None:
@@ -113,7 +114,7 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
     fraction = max(0.1, 0.5 * min(WATER_PLANE_STANDING_M, height) / height)
     _, cov = point_on_ray(hit[None], None, pose.position_ned, ray, focal,
                           ray_sigma_fraction=fraction)
-    return Designation(hit, cov, "water-plane", np.zeros(0, np.int64), None)
+    return Designation(hit, cov, "water-plane", np.zeros(0, np.int64), None, water_down_m)
 
 
 def target_window(image_width: int) -> int:
@@ -135,8 +136,8 @@ class FollowedTarget:
         self.tracker = DesignatedTarget(
             projector.camera, image, np.asarray(uv, float), designation.position_ned,
             designation.covariance, view, params=TargetParams(window=target_window(
-                projector.width)), seed=index, refine=designation.method == "structure",
-            earlier_frames=earlier_frames, views=views)
+                projector.width)), seed=index, earlier_frames=earlier_frames, views=views,
+            water_down_m=designation.water_down_m)
         self.frame_index = index  # last frame followed
         self.refreshed_t = -math.inf  # structure time of the last refresh
 

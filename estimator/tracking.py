@@ -785,16 +785,20 @@ class DesignatedTarget:
     or the water plane) in the frame ``image`` (time ``t``) with the camera pose of that
     frame. ``earlier_frames``: (time, image) of the frames before it, oldest first (gray
     images will do); those within ``TargetParams.track_back_s`` are used. ``views``: the
-    structure window's solved views as of the click (refined at once)."""
+    structure window's solved views as of the click (refined at once). ``water_down_m``:
+    the water plane's down when known — a triangulation below it is refused (the track
+    followed a mirror image). A click the structure did not place (its ray met the water
+    plane) is refined like any other: what stands on the water, a fender or a hull, is
+    placed by its own views."""
 
     def __init__(self, camera: CameraCalibration, image: np.ndarray, uv: np.ndarray,
                  position_ned: np.ndarray, covariance: np.ndarray | None, view: CameraView,
                  params: TargetParams | None = None, method: str = "full",
                  tracker_params: TrackerParams | None = None, seed: int | None = None,
-                 refine: bool = True, earlier_frames: Sequence[tuple[float, np.ndarray]] = (),
-                 views: SolvedViews | None = None) -> None:
+                 earlier_frames: Sequence[tuple[float, np.ndarray]] = (),
+                 views: SolvedViews | None = None, water_down_m: float | None = None) -> None:
         self.camera = camera
-        self.refines = refine  # False: the 3-D point stays (a water-plane point: water moves)
+        self.water_down_m = water_down_m  # a point triangulated below it is a reflection's
         self.params = params or TargetParams()
         self._K = np.asarray(camera.K, float)
         self._dist = np.asarray(camera.distortion, float).ravel()
@@ -819,7 +823,7 @@ class DesignatedTarget:
         # (``TargetTracker._anchor``) since the click: how far it may have drifted.
         self.drift_s = 0.0
         self._last_view_t = t
-        if refine and math.isfinite(t):
+        if math.isfinite(t):
             self._track_back(image, np.asarray(uv, float), t, earlier_frames)
         self._view(np.asarray(uv, float), view, anchored=True)
         self.map.views[:] = 0  # the click is not a tracked view (for the EKF's count)
@@ -929,7 +933,7 @@ class DesignatedTarget:
         p = self.params
         uv = None
         if res.status == "tracking" and res.uv is not None:
-            ok = self._view(res.uv, view, anchored) if self.refines else True
+            ok = self._view(res.uv, view, anchored)
             self.disagreements = 0 if ok else self.disagreements + 1
             if self.disagreements >= p.max_disagreement:
                 self.tracker.status = "lost"
@@ -962,7 +966,7 @@ class DesignatedTarget:
         ladder for the ladder); True if it did. Call it as the structure is refreshed (about
         once a second) — it matters where the solved views are missing (no joint window)."""
         uv = self.tracker.uv
-        if not self.refines or self.refined or self.status != "tracking" or uv is None:
+        if self.refined or self.status != "tracking" or uv is None:
             return False
         C = np.asarray(view.C_level_to_camera, float)
         c = np.asarray(view.position_ned, float)
@@ -987,7 +991,7 @@ class DesignatedTarget:
         top of the click's point. A view keeps the last solved attitude it had once the
         window has moved past it: the early views carry the parallax. Returns the views
         used (0: nothing done — fewer than ``TargetParams.min_refine_views``)."""
-        if not self.refines or views is None:
+        if views is None:
             return 0
         seen = self.seen
         solved = seen.take(views)
@@ -1010,6 +1014,9 @@ class DesignatedTarget:
         if self.attitude_cov is not None:
             J = common_rotation_jacobian(*common)
             P = P + J @ self.attitude_cov @ J.T
+        if self.water_down_m is not None and \
+                X[2] - self.water_down_m > 3.0 * math.sqrt(max(P[2, 2], 0.0)):
+            return 0  # below the water: the track followed a mirror image
         # The views' slow common drifts (``TargetParams.view_drift_px_per_s``,
         # ``unanchored_drift_px_per_s``): from the click, and while the track is unanchored.
         px = float(self.camera.width) / 960.0 / self.map.focal  # normalised units of 1 px
@@ -1064,7 +1071,7 @@ class DesignatedTarget:
         if self.refined:  # the fused attitude only checks a refined point (class docstring)
             self.map.x[0], self.map.P[0] = kept
         ok = out.gated == 0
-        if ok and self.refines and math.isfinite(t):
+        if ok and math.isfinite(t):
             self.seen.add(np.array([t]), xy, np.array([self.drift_s]))
         return ok
 

@@ -286,7 +286,7 @@ def test_a_find_away_from_its_3d_point_does_not_take_the_target_back(panning):
 def test_designated_target_reanchors_on_converged_structure(along_path):
     """A target whose 3-D point came 15 % too far along its ray takes its point again from
     the structure around the pixel it tracks — only once the points there have converged
-    (σ within a few % of their range), never a water-plane target."""
+    (σ within a few % of their range)."""
     seq, point = along_path
     truth = seq.truth(point)
     C0, p0 = seq.poses[0]
@@ -295,11 +295,9 @@ def test_designated_target_reanchors_on_converged_structure(along_path):
     # structure points on the wall around the true point (a few cm of error), and their pixels
     around = point + rng.normal(0.0, 0.03, (6, 3))
     results = {}
-    for name, sigma, refine in (("converged", 0.05, True), ("converging", 3.0, True),
-                                ("water-plane", 0.05, False)):
+    for name, sigma in (("converged", 0.05), ("converging", 3.0)):
         tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None,
-                               CameraView(math.nan, C0, p0), params=TargetParams(), seed=0,
-                               refine=refine)
+                               CameraView(math.nan, C0, p0), params=TargetParams(), seed=0)
         C, p = seq.poses[1]
         tgt.update(seq.images[1], CameraView(T0 + 0.1, C, p))
         uv = project_points(around, C, p, seq.cam)[0]
@@ -308,7 +306,6 @@ def test_designated_target_reanchors_on_converged_structure(along_path):
     d0 = np.linalg.norm(start - point)
     assert results["converged"][0] and results["converged"][1] < 0.1 < 0.5 * d0
     assert not results["converging"][0] and results["converging"][1] > 0.5 * d0
-    assert not results["water-plane"][0] and results["water-plane"][1] > 0.5 * d0
 
 
 def solved_views(seq: Sequence, times: np.ndarray, rotation_sigma: float = 1e-5
@@ -348,11 +345,6 @@ def test_target_tracked_back_and_triangulated_in_the_solved_views(along_path):
                             CameraView(times[-1], C, p), params=TargetParams(), seed=0)
     assert lone.refine(views) == 0 and not lone.refined
     np.testing.assert_allclose(lone.position_ned, start)
-    # a water-plane target (refine=False) is never moved
-    water = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None,
-                             CameraView(times[-1], C, p), seed=0, refine=False,
-                             earlier_frames=list(zip(times[:-1], seq.images[:-1], strict=True)))
-    assert len(water.seen) == 0 and water.refine(views) == 0
 
 
 def test_refined_target_ignores_the_fused_heading_wander(along_path):
@@ -647,3 +639,78 @@ def test_water_plane_designation_reaches_what_stands_on_the_water():
         r_standing = r_water * (1.0 - standing / height)  # on the ray, that high above water
         assert r_water - 2.0 * sigma <= r_standing + 1e-6, (height, r_water, sigma)
         assert sigma >= 0.1 * r_water - 1e-9
+
+
+def test_a_common_track_drift_moves_the_triangulated_point():
+    """Views along a 10 m baseline, 20 s of them, whose pixels slide at a common rate (a
+    template drifting as the target grows): 0.25 px/s moves the point they triangulate as
+    ``common_drift_jacobian`` says (against a re-triangulation), by decimetres at 20 m — far
+    more than their independent 1-px noise says, which is why a refined target's covariance
+    carries it."""
+    from estimator.landmarks import common_drift_jacobian, triangulate_point
+    m, f = 40, 800.0
+    centres = np.column_stack([np.linspace(0, 10, m), np.zeros(m), np.zeros(m)])
+    C = np.repeat(np.eye(3)[None], m, axis=0)
+    X = np.array([3.0, 4.0, 20.0])
+    xy = (X[:2] - centres[:, :2]) / (X[2] - centres[:, 2:])
+    var = np.full(m, (1.0 / f) ** 2)
+    prior = (X + [0.0, 0.0, 1.0], np.eye(3) / 25.0)
+    dt = np.linspace(-20.0, 0.0, m)  # tracked back from the click (the last view)
+    est, info, used = triangulate_point(C, centres, xy, var, *prior)
+    J = common_drift_jacobian(C, centres, xy, var, est, *prior, dt)
+    w = np.array([0.25, 0.0]) / f  # along the baseline: where it reads as depth
+    moved, _, _ = triangulate_point(C, centres, xy + dt[:, None] * w, var, *prior)
+    shift = np.linalg.norm(moved - est)
+    assert used.all() and shift > 0.1
+    assert shift > 5 * math.sqrt(np.linalg.inv(info)[2, 2])  # beyond the independent noise
+    np.testing.assert_allclose(J @ w, moved - est, atol=0.1 * shift)
+    # no time from the reference view, no drift
+    assert np.abs(common_drift_jacobian(C, centres, xy, var, est, *prior, 0 * dt)).max() < 1e-9
+
+
+def test_a_target_whose_views_meet_below_the_water_is_not_refined(along_path):
+    """A track that followed a mirror image triangulates below the water plane: refused,
+    the click's point kept. The same views with the water below them are taken."""
+    seq, point = along_path
+    times = T0 + 0.1 * np.arange(N_FRAMES)
+    truth = seq.truth(point)
+    C, p = seq.poses[-1]
+    start = p + 1.15 * (point - p)
+    earlier = list(zip(times[:-1], seq.images[:-1], strict=True))
+    views = solved_views(seq, times)
+    for water_down, refined in ((point[2] + 5.0, True), (point[2] - 0.5, False)):
+        tgt = DesignatedTarget(seq.cam, seq.images[-1], truth[-1], start, None,
+                               CameraView(times[-1], C, p), params=TargetParams(), seed=0,
+                               earlier_frames=earlier, views=views, water_down_m=water_down)
+        assert tgt.refined is refined, water_down
+        moved = np.linalg.norm(tgt.position_ned - start)
+        assert (moved > 0.5) if refined else (moved < 1e-9), (water_down, moved)
+
+
+def test_a_click_the_structure_does_not_place_is_placed_by_its_own_views(along_path):
+    """A click on the quay with no port-structure point near it falls back to where its ray
+    meets the water, metres beyond what was clicked (a fender, the quay face: seeds 112 and
+    113 had them 7–17 m off). Tracked back through the frames before the click and
+    triangulated in the solved views like any target, it lands on what was clicked."""
+    from engine.camera import Projector
+    from engine.targets import FollowedTarget, Structure, designate
+
+    seq, point = along_path
+    times = T0 + 0.1 * np.arange(N_FRAMES)
+    truth = seq.truth(point)
+    C, p = seq.poses[-1]
+    assert point[2] > p[2]  # the clicked point is below the camera: its ray goes down
+    projector = Projector(seq.cam)
+    view = CameraView(times[-1], C, p)
+    d_true = float(np.linalg.norm(point - p))
+    des = designate(projector, view, *truth[-1], Structure(None), float(point[2]) + 0.5)
+    assert des.method == "water-plane"
+    assert np.linalg.norm(des.position_ned - p) - d_true > 2.0
+    tgt = FollowedTarget(projector, des, seq.images[-1], tuple(truth[-1]), view, N_FRAMES - 1,
+                         list(zip(times[:-1], seq.images[:-1], strict=True)),
+                         solved_views(seq, times))
+    state = tgt.follow(N_FRAMES, seq.images[-1], CameraView(times[-1] + 0.1, C, p),
+                       Structure(None))
+    err = abs(state.distance_m - d_true)
+    assert tgt.tracker.refined and err < 0.1 * d_true and err < 2 * state.distance_sigma_m, \
+        (err, state.distance_sigma_m)
