@@ -281,22 +281,26 @@ def common_rotation_jacobian(C_level_to_camera: np.ndarray, camera_position_ned:
 def common_drift_jacobian(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
                           xy: np.ndarray, ray_var: np.ndarray, X: np.ndarray,
                           x_prior: np.ndarray, info_prior: np.ndarray, dt: np.ndarray,
-                          step: float = 1e-4) -> np.ndarray:
-    """d(point)/d(w), (3,2): how the point triangulated from one tracked pixel's views moves
-    when the track drifts at a common rate ``w`` (normalised image units per second) from
-    its reference view: view k off by ``w dt[k]``. An image tracker's drift (a template
-    sliding as the target grows or shrinks) is common to the views and grows with their
-    distance in time from where the template was taken, where the parallax is: no number
-    of views averages it out, and ``J Q Jᵀ`` (Q: the drift rate's covariance) belongs in
-    the point's covariance."""
+                          on: str = "pixels", step: float = 1e-4) -> np.ndarray:
+    """d(point)/d(w): how the point triangulated from one tracked pixel's views moves when
+    their errors drift at a common rate ``w`` from a reference view: view k off by
+    ``w dt[k]``, on its ``"pixels"`` (normalised image units per second, (3,2): an image
+    tracker's template sliding as the target grows or shrinks) or on its camera
+    ``"centres"`` (m/s, (3,3): the fused position's slow error). Such errors grow with the
+    views' distance in time from the reference, where the parallax is: no number of views
+    averages them out, and ``J Q Jᵀ`` (Q: the rate's covariance) belongs in the point's
+    covariance."""
     xy = np.asarray(xy, float).reshape(-1, 2)
+    centres = np.asarray(camera_position_ned, float).reshape(-1, 3)
     dt = np.asarray(dt, float).reshape(-1, 1)
-    J = np.zeros((3, 2))
-    for k in range(2):
-        w = np.zeros(2)
+    dims = {"pixels": 2, "centres": 3}[on]
+    J = np.zeros((3, dims))
+    for k in range(dims):
+        w = np.zeros(dims)
         w[k] = step
-        J[:, k] = (_retriangulated(C_level_to_camera, camera_position_ned, xy + dt * w,
-                                   ray_var, X, x_prior, info_prior) - X) / step
+        moved_xy, moved_c = (xy + dt * w, centres) if on == "pixels" else (xy, centres + dt * w)
+        J[:, k] = (_retriangulated(C_level_to_camera, moved_c, moved_xy, ray_var, X, x_prior,
+                                   info_prior) - X) / step
     return J
 
 

@@ -584,12 +584,12 @@ class TargetParams:
     # along the line of sight does not. Further back a template can slip to a neighbouring
     # feature unnoticed (default recording: the first slips 25 and 33 s back).
     track_back_s: float = 20.0
-    # Slow errors the views share, 1-σ rates (px/s at 960 px of image width) of a drift
-    # common to them (``refine``: no number of views averages it out). Every view: the
-    # solved attitudes' error wanders by ~0.1° over 30 s. While the track is unanchored
-    # (its first template not aligned): the template slides as the target grows or
-    # shrinks, by a few pixels over tens of seconds.
-    view_drift_px_per_s: float = 0.1
+    # Slow errors the views share, 1-σ rates of a drift common to them (``refine``: no
+    # number of views averages it out). Every view: the fused camera centre's error moves
+    # by a few cm over tens of seconds (m/s, per axis). While the track is unanchored (its
+    # first template not aligned): the template slides as the target grows or shrinks, by
+    # a few pixels over tens of seconds (px/s at 960 px of image width).
+    position_drift_mps: float = 0.002
     unanchored_drift_px_per_s: float = 0.25
     # The target's landmark EKF: the tracker's pixel noise, never dropped (the tracker is
     # declared lost instead), the click's ray prior from the structure points' spread.
@@ -1017,13 +1017,14 @@ class DesignatedTarget:
         if self.water_down_m is not None and \
                 X[2] - self.water_down_m > 3.0 * math.sqrt(max(P[2, 2], 0.0)):
             return 0  # below the water: the track followed a mirror image
-        # The views' slow common drifts (``TargetParams.view_drift_px_per_s``,
-        # ``unanchored_drift_px_per_s``): from the click, and while the track is unanchored.
+        # The views' slow common drifts: their camera centres' from the click
+        # (``TargetParams.position_drift_mps``), the track's while it is unanchored
+        # (``unanchored_drift_px_per_s``).
+        J = common_drift_jacobian(*common, seen.t[u] - self.click_time, on="centres")
+        P = P + self.params.position_drift_mps ** 2 * (J @ J.T)
         px = float(self.camera.width) / 960.0 / self.map.focal  # normalised units of 1 px
-        for rate, dt in ((self.params.view_drift_px_per_s, seen.t[u] - self.click_time),
-                         (self.params.unanchored_drift_px_per_s, seen.drift_s[u])):
-            J = common_drift_jacobian(*common, dt)
-            P = P + (rate * px) ** 2 * (J @ J.T)
+        J = common_drift_jacobian(*common, seen.drift_s[u])
+        P = P + (self.params.unanchored_drift_px_per_s * px) ** 2 * (J @ J.T)
         self.map.x[0], self.map.P[0] = X, P
         self.refined_views = n
         return n
