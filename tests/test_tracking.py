@@ -646,7 +646,7 @@ def test_a_common_track_drift_moves_the_triangulated_point():
     template drifting as the target grows): 0.25 px/s moves the point they triangulate as
     ``common_drift_jacobian`` says (against a re-triangulation), by decimetres at 20 m — far
     more than their independent 1-px noise says, which is why a refined target's covariance
-    carries it."""
+    carries it. So does a drift of the camera centres."""
     from estimator.landmarks import common_drift_jacobian, triangulate_point
     m, f = 40, 800.0
     centres = np.column_stack([np.linspace(0, 10, m), np.zeros(m), np.zeros(m)])
@@ -666,6 +666,13 @@ def test_a_common_track_drift_moves_the_triangulated_point():
     np.testing.assert_allclose(J @ w, moved - est, atol=0.1 * shift)
     # no time from the reference view, no drift
     assert np.abs(common_drift_jacobian(C, centres, xy, var, est, *prior, 0 * dt)).max() < 1e-9
+    # the camera centres' slow error (the fused position's), 5 mm/s along the baseline
+    Jc = common_drift_jacobian(C, centres, xy, var, est, *prior, dt, on="centres")
+    v = np.array([0.005, 0.0, 0.0])
+    moved, _, _ = triangulate_point(C, centres + dt[:, None] * v, xy, var, *prior)
+    shift = np.linalg.norm(moved - est)
+    assert Jc.shape == (3, 3) and shift > 0.1
+    np.testing.assert_allclose(Jc @ v, moved - est, atol=0.1 * shift)
 
 
 def test_a_target_whose_views_meet_below_the_water_is_not_refined(along_path):
