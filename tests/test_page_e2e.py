@@ -553,10 +553,12 @@ def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
     assert f3["overlay"]["targets"][0]["id"] != t1["id"]
 
     # three targets a few pixels apart (a ladder and the fenders beside it): each label is
-    # drawn where no other covers it
+    # drawn where no other covers it (ids no server target has: the page hides a target it
+    # has asked the server to remove until the server's frames no longer carry it, and the
+    # first one, T1, may still be on its way out)
     boxes = page.evaluate("""() => {
       const f = structuredClone(window.berthing.frame), t = f.overlay.targets[0];
-      f.overlay.targets = [0, 1, 2].map((k) => ({...t, id: `T${k}`, label: `T${k}`,
+      f.overlay.targets = [0, 1, 2].map((k) => ({...t, id: `near${k}`, label: `T${k}`,
         uv: [f.width / 2 + 6 * k, f.height / 2 + 4 * k], visible: true}));
       window.berthing.show(f);
       return window.berthing.labels;
