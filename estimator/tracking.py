@@ -711,14 +711,14 @@ def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: n
 
 class _SeenViews:
     """A designated target's tracked views, in time order: time, undistorted normalised
-    pixel, the seconds the track had gone unanchored by then (``DesignatedTarget.drift_s``)
+    pixel, the seconds the track had gone unanchored by then (``DesignatedTarget.unanchored_s``)
     and — once the structure's joint window has solved the view of that time — its
     attitude, camera centre and rotation variance (NaN before)."""
 
     def __init__(self) -> None:
         self.t = np.zeros(0)
         self.xy = np.zeros((0, 2))
-        self.drift_s = np.zeros(0)
+        self.unanchored_s = np.zeros(0)
         self.C = np.zeros((0, 3, 3))
         self.centre = np.zeros((0, 3))
         self.rotation_var = np.zeros(0)
@@ -726,7 +726,7 @@ class _SeenViews:
     def __len__(self) -> int:
         return len(self.t)
 
-    def add(self, t: np.ndarray, xy: np.ndarray, drift_s: np.ndarray) -> None:
+    def add(self, t: np.ndarray, xy: np.ndarray, unanchored_s: np.ndarray) -> None:
         """Views at times ``t`` (increasing); those at or after ``t[0]`` are dropped first
         (a seek back replays them)."""
         t = np.asarray(t, float).reshape(-1)
@@ -736,14 +736,15 @@ class _SeenViews:
         n = len(t)
         self.t = np.concatenate([self.t, t])
         self.xy = np.concatenate([self.xy, np.asarray(xy, float).reshape(n, 2)])
-        self.drift_s = np.concatenate([self.drift_s, np.asarray(drift_s, float).reshape(n)])
+        self.unanchored_s = np.concatenate([self.unanchored_s,
+                                            np.asarray(unanchored_s, float).reshape(n)])
         self.C = np.concatenate([self.C, np.full((n, 3, 3), np.nan)])
         self.centre = np.concatenate([self.centre, np.full((n, 3), np.nan)])
         self.rotation_var = np.concatenate([self.rotation_var, np.full(n, np.nan)])
 
     def keep(self, mask: np.ndarray) -> None:
         self.t, self.xy, self.C = self.t[mask], self.xy[mask], self.C[mask]
-        self.drift_s = self.drift_s[mask]
+        self.unanchored_s = self.unanchored_s[mask]
         self.centre, self.rotation_var = self.centre[mask], self.rotation_var[mask]
 
     def take(self, views: SolvedViews) -> np.ndarray:
@@ -821,7 +822,7 @@ class DesignatedTarget:
         self.seen = _SeenViews()
         # Seconds the forward track has gone without its first template's alignment
         # (``TargetTracker._anchor``) since the click: how far it may have drifted.
-        self.drift_s = 0.0
+        self.unanchored_s = 0.0
         self._last_view_t = t
         if math.isfinite(t):
             self._track_back(image, np.asarray(uv, float), t, earlier_frames)
@@ -998,32 +999,32 @@ class DesignatedTarget:
         if solved.sum() < self.params.min_refine_views:
             return 0
         X0, P0 = self.click_point
+        info0 = np.linalg.inv(P0)
         pixel_var = (self.params.landmark.pixel_sigma_px / self.map.focal) ** 2
         rows = np.flatnonzero(solved)
         rows = rows[np.argsort(np.abs(seen.t[rows] - self.click_time), kind="stable")]
         X, info, used = triangulate_point(seen.C[rows], seen.centre[rows], seen.xy[rows],
-                                          pixel_var + seen.rotation_var[rows], X0,
-                                          np.linalg.inv(P0))
+                                          pixel_var + seen.rotation_var[rows], X0, info0)
         n = int(used.sum())
         if n < self.params.min_refine_views or not np.isfinite(X).all():
             return 0
         P = np.linalg.inv(info)
         u = rows[used]
         common = (seen.C[u], seen.centre[u], seen.xy[u], pixel_var + seen.rotation_var[u], X,
-                  X0, np.linalg.inv(P0))
+                  X0, info0)
         if self.attitude_cov is not None:
             J = common_rotation_jacobian(*common)
             P = P + J @ self.attitude_cov @ J.T
         if self.water_down_m is not None and \
                 X[2] - self.water_down_m > 3.0 * math.sqrt(max(P[2, 2], 0.0)):
-            return 0  # below the water: the track followed a mirror image
+            return 0  # below the water: the track followed a mirror image (the drifts unspent)
         # The views' slow common drifts: their camera centres' from the click
         # (``TargetParams.position_drift_mps``), the track's while it is unanchored
         # (``unanchored_drift_px_per_s``).
         J = common_drift_jacobian(*common, seen.t[u] - self.click_time, on="centres")
         P = P + self.params.position_drift_mps ** 2 * (J @ J.T)
         px = float(self.camera.width) / 960.0 / self.map.focal  # normalised units of 1 px
-        J = common_drift_jacobian(*common, seen.drift_s[u])
+        J = common_drift_jacobian(*common, seen.unanchored_s[u])
         P = P + (self.params.unanchored_drift_px_per_s * px) ** 2 * (J @ J.T)
         self.map.x[0], self.map.P[0] = X, P
         self.refined_views = n
@@ -1037,7 +1038,7 @@ class DesignatedTarget:
         back = TargetTracker(method="template")
         back.init(_gray(image), uv, self.params.window)
         seen = []
-        drift_s, t_prev = 0.0, t  # unanchored seconds, counted back from the click (< 0)
+        unanchored_s, t_prev = 0.0, t  # unanchored seconds, counted back from the click (< 0)
         for t_k, img in reversed(earlier_frames):
             if not t - self.params.track_back_s <= t_k < t:
                 continue
@@ -1045,15 +1046,15 @@ class DesignatedTarget:
             res = back.follow_flow(img)
             if res.status != "tracking" or res.uv is None:
                 break
-            drift_s = 0.0 if back.anchored > anchored else drift_s - (t_prev - float(t_k))
+            unanchored_s = 0.0 if back.anchored > anchored else \
+                unanchored_s - (t_prev - float(t_k))
             t_prev = float(t_k)
-            seen.append((t_prev, res.uv, drift_s))
+            seen.append((t_prev, res.uv, unanchored_s))
         if seen:
-            seen.reverse()
-            uvs = np.array([q for _, q, _ in seen], np.float64).reshape(-1, 1, 2)
-            self.seen.add(np.array([tk for tk, _, _ in seen]),
-                          cv2.undistortPoints(uvs, self._K, self._dist).reshape(-1, 2),
-                          np.array([d for _, _, d in seen]))
+            times, uvs, unanchored = (np.array(column, np.float64)
+                                      for column in zip(*reversed(seen), strict=True))
+            self.seen.add(times, cv2.undistortPoints(uvs.reshape(-1, 1, 2), self._K,
+                                                     self._dist).reshape(-1, 2), unanchored)
 
     def _view(self, uv: np.ndarray, view: CameraView, anchored: bool) -> bool:
         """One tracked view of the 3-D point (kept for ``refine``); False when its χ² gate
@@ -1061,7 +1062,7 @@ class DesignatedTarget:
         C, c, pose_cov, t = view.C_level_to_camera, view.position_ned, view.pose_cov, view.t
         if math.isfinite(t):
             step = t - self._last_view_t if math.isfinite(self._last_view_t) else 0.0
-            self.drift_s = 0.0 if anchored else self.drift_s + max(step, 0.0)
+            self.unanchored_s = 0.0 if anchored else self.unanchored_s + max(step, 0.0)
             self._last_view_t = t
         if pose_cov is not None:
             self.attitude_cov = np.asarray(pose_cov, float)[3:, 3:]
@@ -1073,7 +1074,7 @@ class DesignatedTarget:
             self.map.x[0], self.map.P[0] = kept
         ok = out.gated == 0
         if ok and math.isfinite(t):
-            self.seen.add(np.array([t]), xy, np.array([self.drift_s]))
+            self.seen.add(np.array([t]), xy, np.array([self.unanchored_s]))
         return ok
 
 
