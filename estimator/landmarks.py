@@ -304,6 +304,22 @@ def common_drift_jacobian(C_level_to_camera: np.ndarray, camera_position_ned: np
     return J
 
 
+def excess_disagreement(x_a: np.ndarray, P_a: np.ndarray, x_b: np.ndarray, P_b: np.ndarray
+                        ) -> np.ndarray:
+    """(3,3): the part of two estimates' disagreement their covariances do not explain,
+    along the line between them — ``max(0, |d|² − uᵀ(P_a + P_b)u) u uᵀ`` with ``d = x_a −
+    x_b``, ``u = d/|d|`` (a method-of-moments estimate of the error neither covariance
+    knows). Zero when they agree within their σ. Two halves of one track's views that
+    disagree so show an error common to each half's views: a slid template."""
+    d = np.asarray(x_a, float).reshape(3) - np.asarray(x_b, float).reshape(3)
+    n = float(np.linalg.norm(d))
+    if not np.isfinite(n) or n == 0.0:
+        return np.zeros((3, 3))
+    u = d / n
+    extra = n * n - float(u @ (np.asarray(P_a, float) + np.asarray(P_b, float)) @ u)
+    return max(extra, 0.0) * np.outer(u, u)
+
+
 def _retriangulated(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
                     xy: np.ndarray, ray_var: np.ndarray, X: np.ndarray, x_prior: np.ndarray,
                     info_prior: np.ndarray, iterations: int = 3) -> np.ndarray:

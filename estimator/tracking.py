@@ -75,6 +75,7 @@ from .landmarks import (
     common_drift_jacobian,
     common_rotation_jacobian,
     converged,
+    excess_disagreement,
     ray_prior,
     triangulate_point,
 )
@@ -1026,9 +1027,33 @@ class DesignatedTarget:
         px = float(self.camera.width) / 960.0 / self.map.focal  # normalised units of 1 px
         J = common_drift_jacobian(*common, seen.unanchored_s[u])
         P = P + (self.params.unanchored_drift_px_per_s * px) ** 2 * (J @ J.T)
+        P = P + self._halves_disagreement(rows, pixel_var, X0, info0)
         self.map.x[0], self.map.P[0] = X, P
         self.refined_views = n
         return n
+
+    def _halves_disagreement(self, rows: np.ndarray, pixel_var: float, X0: np.ndarray,
+                             info0: np.ndarray) -> np.ndarray:
+        """(3,3): how far the point of the views before the click (its template tracked
+        back) and that of the views after it (the forward track) disagree beyond their own
+        covariances (``excess_disagreement``); zero unless both sides have
+        ``min_refine_views``. The two are tracked apart: a template that slid — along an
+        edge, say, which near the horizon is the direction a depth change moves a point —
+        moves one side's point and not the other's, by an error no view's noise explains.
+        ``rows``: the solved views, nearest the click first — all of them: those the
+        triangulation's gates left out are a side's evidence too."""
+        seen, need = self.seen, self.params.min_refine_views
+        sides = []
+        for side in (seen.t[rows] < self.click_time, seen.t[rows] > self.click_time):
+            r = rows[side]
+            if len(r) < need:
+                return np.zeros((3, 3))
+            X, info, used = triangulate_point(seen.C[r], seen.centre[r], seen.xy[r],
+                                              pixel_var + seen.rotation_var[r], X0, info0)
+            if used.sum() < need or not np.isfinite(X).all():
+                return np.zeros((3, 3))
+            sides.append((X, np.linalg.inv(info)))
+        return excess_disagreement(*sides[0], *sides[1])
 
     def _track_back(self, image: np.ndarray, uv: np.ndarray, t: float,
                     earlier_frames: Sequence[tuple[float, np.ndarray]]) -> None:

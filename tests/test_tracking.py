@@ -721,3 +721,45 @@ def test_a_click_the_structure_does_not_place_is_placed_by_its_own_views(along_p
     err = abs(state.distance_m - d_true)
     assert tgt.tracker.refined and err < 0.1 * d_true and err < 2 * state.distance_sigma_m, \
         (err, state.distance_sigma_m)
+
+
+def test_excess_disagreement_is_what_the_covariances_do_not_explain():
+    """Two estimates of one point: agreeing within their σ, nothing; 1 m apart with 10 cm
+    σ each, the excess (1 − 2·0.01 m²) along the line between them, none across it."""
+    from estimator.landmarks import excess_disagreement
+    P = 0.01 * np.eye(3)
+    assert np.all(excess_disagreement([0, 0, 10], P, [0.05, 0, 10.1], P) == 0.0)
+    E = excess_disagreement([0, 0, 10], P, [0, 0, 11], P)
+    np.testing.assert_allclose(E, np.diag([0.0, 0.0, 0.98]), atol=1e-12)
+    assert np.all(excess_disagreement([1, 2, 3], P, [1, 2, 3], P) == 0.0)
+
+
+def test_a_track_that_slides_after_the_click_widens_its_sigma(along_path):
+    """Clicked mid-way: the views before the click are its template tracked back, those after
+    it the forward track. Forward frames shifted 0.3 px more each (a template sliding along
+    the quay while its first template still aligns: the track follows the shift, the solved
+    poses do not) pull the point metres off; the two sides then disagree, and the point's σ
+    covers its error (it claimed 1.6 m for a 4.9 m error before). Without the slide the σ
+    stays as the views make it."""
+    seq, point = along_path
+    times = T0 + 0.1 * np.arange(N_FRAMES)
+    truth = seq.truth(point)
+    k = N_FRAMES // 2
+    views = solved_views(seq, times)
+    errors, sigmas = {}, {}
+    for slide in (0.0, 0.3):
+        C, p = seq.poses[k]
+        tgt = DesignatedTarget(seq.cam, seq.images[k], truth[k], p + 1.15 * (point - p), None, CameraView(times[k], C, p), params=TargetParams(), seed=0,
+                               earlier_frames=list(zip(times[:k], seq.images[:k], strict=True)))
+        for j in range(k + 1, N_FRAMES):
+            shift = np.float32([[1, 0, slide * (j - k)], [0, 1, 0]])
+            img = cv2.warpAffine(seq.images[j], shift, seq.images[j].shape[1::-1],
+                                 borderMode=cv2.BORDER_REPLICATE)
+            tgt.update(img, CameraView(times[j], *seq.poses[j]))
+        assert tgt.refine(views) >= k + 3, slide  # views on both sides of the click
+        C, p = seq.poses[-1]
+        d, sigma = tgt.distance(CameraView(times[-1], C, p))
+        errors[slide], sigmas[slide] = abs(d - np.linalg.norm(point - p)), sigma
+    assert errors[0.3] > 3 * errors[0.0] and errors[0.3] > 1.0, errors
+    assert errors[0.3] <= 2 * sigmas[0.3], (errors, sigmas)
+    assert errors[0.0] <= 2 * sigmas[0.0] and sigmas[0.0] < 0.5 * sigmas[0.3], sigmas
