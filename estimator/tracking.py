@@ -710,6 +710,25 @@ def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: n
     return None
 
 
+def split_disagreement(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                       xy: np.ndarray, ray_var: np.ndarray, x_prior: np.ndarray,
+                       info_prior: np.ndarray, a: np.ndarray, b: np.ndarray,
+                       min_views: int = 3) -> np.ndarray:
+    """(3,3): ``excess_disagreement`` of one point triangulated (``triangulate_point``)
+    from the views ``a`` and from the views ``b`` (indexes, each in the order trusted);
+    zero unless each side gives ``min_views``."""
+    halves = []
+    for r in (np.asarray(a, int), np.asarray(b, int)):
+        if len(r) < min_views:
+            return np.zeros((3, 3))
+        X, info, used = triangulate_point(C_level_to_camera[r], camera_position_ned[r], xy[r],
+                                          ray_var[r], x_prior, info_prior)
+        if used.sum() < min_views or not np.isfinite(X).all():
+            return np.zeros((3, 3))
+        halves.append((X, np.linalg.inv(info)))
+    return excess_disagreement(*halves[0], *halves[1])
+
+
 class _SeenViews:
     """A designated target's tracked views, in time order: time, undistorted normalised
     pixel, the seconds the track had gone unanchored by then (``DesignatedTarget.unanchored_s``)
@@ -1034,26 +1053,29 @@ class DesignatedTarget:
 
     def _halves_disagreement(self, rows: np.ndarray, pixel_var: float, X0: np.ndarray,
                              info0: np.ndarray) -> np.ndarray:
-        """(3,3): how far the point of the views before the click (its template tracked
-        back) and that of the views after it (the forward track) disagree beyond their own
-        covariances (``excess_disagreement``); zero unless both sides have
-        ``min_refine_views``. The two are tracked apart: a template that slid — along an
-        edge, say, which near the horizon is the direction a depth change moves a point —
-        moves one side's point and not the other's, by an error no view's noise explains.
-        ``rows``: the solved views, nearest the click first — all of them: those the
-        triangulation's gates left out are a side's evidence too."""
-        seen, need = self.seen, self.params.min_refine_views
-        sides = []
-        for side in (seen.t[rows] < self.click_time, seen.t[rows] > self.click_time):
-            r = rows[side]
-            if len(r) < need:
-                return np.zeros((3, 3))
-            X, info, used = triangulate_point(seen.C[r], seen.centre[r], seen.xy[r],
-                                              pixel_var + seen.rotation_var[r], X0, info0)
-            if used.sum() < need or not np.isfinite(X).all():
-                return np.zeros((3, 3))
-            sides.append((X, np.linalg.inv(info)))
-        return excess_disagreement(*sides[0], *sides[1])
+        """(3,3): how far the points of two halves of the views disagree beyond their own
+        covariances (``excess_disagreement``), the larger of two splits: the views before
+        the click (its template tracked back) against those after it (the forward track),
+        and the forward track's older half against its newer one. A template that slid —
+        along an edge, say, which near the horizon is the direction a depth change moves a
+        point — moves the point of the views after the slide and not that of those before
+        it, by an error no view's noise explains. A split needs ``min_refine_views`` on
+        each side. ``rows``: the solved views, nearest the click first — all of them: those
+        the triangulation's gates left out are a half's evidence too."""
+        seen = self.seen
+        after = rows[seen.t[rows] > self.click_time]
+        by_time = after[np.argsort(seen.t[after], kind="stable")]
+        newer = np.isin(rows, by_time[len(by_time) // 2:])
+        splits = ((rows[seen.t[rows] < self.click_time], after),
+                  (rows[np.isin(rows, after) & ~newer], rows[newer]))
+        excess = np.zeros((3, 3))
+        for a, b in splits:
+            E = split_disagreement(seen.C, seen.centre, seen.xy,
+                                   pixel_var + seen.rotation_var, X0, info0, a, b,
+                                   self.params.min_refine_views)
+            if np.trace(E) > np.trace(excess):
+                excess = E
+        return excess
 
     def _track_back(self, image: np.ndarray, uv: np.ndarray, t: float,
                     earlier_frames: Sequence[tuple[float, np.ndarray]]) -> None:

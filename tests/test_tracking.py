@@ -641,6 +641,15 @@ def test_water_plane_designation_reaches_what_stands_on_the_water():
         assert sigma >= 0.1 * r_water - 1e-9
 
 
+def baseline_views(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``m`` views along a 10 m baseline, each looking down L's third axis, of a point 20 m
+    away: attitudes, camera centres, the point and its normalised pixels."""
+    centres = np.column_stack([np.linspace(0, 10, m), np.zeros(m), np.zeros(m)])
+    C = np.repeat(np.eye(3)[None], m, axis=0)
+    X = np.array([3.0, 4.0, 20.0])
+    return C, centres, X, (X[:2] - centres[:, :2]) / (X[2] - centres[:, 2:])
+
+
 def test_a_common_track_drift_moves_the_triangulated_point():
     """Views along a 10 m baseline, 20 s of them, whose pixels slide at a common rate (a
     template drifting as the target grows): 0.25 px/s moves the point they triangulate as
@@ -649,10 +658,7 @@ def test_a_common_track_drift_moves_the_triangulated_point():
     carries it. So does a drift of the camera centres."""
     from estimator.landmarks import common_drift_jacobian, triangulate_point
     m, f = 40, 800.0
-    centres = np.column_stack([np.linspace(0, 10, m), np.zeros(m), np.zeros(m)])
-    C = np.repeat(np.eye(3)[None], m, axis=0)
-    X = np.array([3.0, 4.0, 20.0])
-    xy = (X[:2] - centres[:, :2]) / (X[2] - centres[:, 2:])
+    C, centres, X, xy = baseline_views(m)
     var = np.full(m, (1.0 / f) ** 2)
     prior = (X + [0.0, 0.0, 1.0], np.eye(3) / 25.0)
     dt = np.linspace(-20.0, 0.0, m)  # tracked back from the click (the last view)
@@ -749,7 +755,8 @@ def test_a_track_that_slides_after_the_click_widens_its_sigma(along_path):
     errors, sigmas = {}, {}
     for slide in (0.0, 0.3):
         C, p = seq.poses[k]
-        tgt = DesignatedTarget(seq.cam, seq.images[k], truth[k], p + 1.15 * (point - p), None, CameraView(times[k], C, p), params=TargetParams(), seed=0,
+        tgt = DesignatedTarget(seq.cam, seq.images[k], truth[k], p + 1.15 * (point - p), None,
+                               CameraView(times[k], C, p), params=TargetParams(), seed=0,
                                earlier_frames=list(zip(times[:k], seq.images[:k], strict=True)))
         for j in range(k + 1, N_FRAMES):
             shift = np.float32([[1, 0, slide * (j - k)], [0, 1, 0]])
@@ -763,3 +770,32 @@ def test_a_track_that_slides_after_the_click_widens_its_sigma(along_path):
     assert errors[0.3] > 3 * errors[0.0] and errors[0.3] > 1.0, errors
     assert errors[0.3] <= 2 * sigmas[0.3], (errors, sigmas)
     assert errors[0.0] <= 2 * sigmas[0.0] and sigmas[0.0] < 0.5 * sigmas[0.3], sigmas
+
+
+def test_a_forward_track_sliding_late_shows_in_its_halves_disagreement():
+    """Views along a 10 m baseline over 20 s; from the middle on the pixels slide along the
+    baseline at 0.5 px/s (a template slipping along the quay). The point of all the views is
+    pulled 0.24 m off with a σ of 5 cm; the older and the newer half of the views
+    disagree beyond their own covariances, and that excess (``split_disagreement``) covers
+    the error. Without the slide the halves agree: nothing is added."""
+    from estimator.landmarks import triangulate_point
+    from estimator.tracking import split_disagreement
+    m, f = 40, 800.0
+    C, centres, X, xy = baseline_views(m)
+    var = np.full(m, (1.5 / f) ** 2)
+    prior = (X + [0.0, 0.0, 2.0], np.diag([1.0, 1.0, 1 / 25.0]))
+    t = np.linspace(0.0, 20.0, m)
+    older, newer = np.arange(m // 2), np.arange(m // 2, m)
+    for rate in (0.0, 0.5):
+        slid = xy + np.column_stack([rate / f * np.maximum(t - 10.0, 0.0), np.zeros(m)])
+        est, info, _ = triangulate_point(C, centres, slid, var, *prior)
+        E = split_disagreement(C, centres, slid, var, *prior, older, newer)
+        error = np.linalg.norm(est - X)
+        u = (est - X) / max(error, 1e-12)
+        sigma, widened = math.sqrt(u @ np.linalg.inv(info) @ u), math.sqrt(
+            u @ (np.linalg.inv(info) + E) @ u)
+        if rate == 0.0:
+            assert np.all(E == 0.0) and error < 0.01
+        else:
+            assert error > 0.2 and error > 3 * sigma, (error, sigma)
+            assert error <= 2 * widened, (error, widened)
