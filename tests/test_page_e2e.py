@@ -511,7 +511,7 @@ def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
     assert re.search(r"^\d+(\.\d\d?)? m$", page.locator("#targets li[data-id] .tdist").inner_text())
     # with its 1-σ, as the stream gives it
     sub = page.locator("#targets li[data-id] .tsub").inner_text()
-    sigma = re.search(r"±(\d+\.\d\d) m", sub)
+    sigma = re.search(r"±(\d+\.\d\d?) m", sub)  # cm below 10 m, dm beyond
     assert sigma and t1["distance_sigma_m"] is not None, sub
     assert abs(float(sigma.group(1)) - t1["distance_sigma_m"]) < 0.2 * t1["distance_sigma_m"] + 0.02
     shot(page, "04_target_designated")
@@ -535,6 +535,14 @@ def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
       return Array.from(cv.getContext('2d').getImageData(Math.round(x), Math.round(y), 1, 1).data);
     }""")
     assert label[3] > 150, f"no distance label at the target: {label}"
+    # ... and it reads the distance with its σ, as the list does
+    drawn, shown_t = page.evaluate("""() => [window.berthing.labels.map((l) => l[4]),
+                                            window.berthing.frame.overlay.targets[0]]""")
+    m = re.fullmatch(r"(\S+)  (\S+) ±(\d+\.\d\d?) m", drawn[0])
+    assert m, drawn
+    assert m[1] == (shown_t["label"] or shown_t["id"])
+    assert m[2] == range_digits(shown_t["distance_m"])
+    assert float(m[3]) == pytest.approx(shown_t["distance_sigma_m"], abs=0.051)
     assert page.locator("#targets li[data-id]").count() == 1
     # the list shows the distance of the frame on screen
     shown = page.evaluate("""() => [

@@ -3,7 +3,7 @@
 // give distances at a glance; the same distance colours as on the video.
 
 import { colors } from "./theme.js";
-import { fmtDistance } from "./format.js";
+import { fmtMeasured } from "./format.js";
 import { drawPick, label } from "./overlay.js";
 
 const RANGES_M = [5, 10, 20, 30, 50, 100, 200, 500, 1000]; // half-width of the view
@@ -238,7 +238,7 @@ export class BirdsEye {
     ctx.arc(x, y, 6, 0, 2 * Math.PI);
     ctx.stroke();
     const r = readouts?.find((o) => o.id === t.id);
-    const text = r ? `${r.label || t.id} ${fmtDistance(r.distance_m)} m` : t.id;
+    const text = r ? `${r.label || t.id} ${fmtMeasured(r.distance_m, r.distance_sigma_m)}` : t.id;
     ctx.font = "700 12px system-ui, sans-serif";
     const w = ctx.measureText(text).width + 8, h = 20;
     for (const [dx, dy] of [[9, -10], [9, 10], [-9 - w, -10], [-9 - w, 10], [-w / 2, -22], [-w / 2, 22]]) {

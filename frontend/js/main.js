@@ -85,7 +85,7 @@ window.berthing = {
   get session() { return app.session; },
   get colors() { return colors(); },
   get plan() { return plan.view; },
-  get labels() { return app.labels || []; }, // the targets' label boxes drawn (CSS px)
+  get labels() { return app.labels || []; }, // the targets' labels drawn: box (CSS px) and text
   get toasts() { return [...toasts]; },
   get stats() { return { frames: stream.frames, dropped: stream.dropped, connection: stream.state }; },
   get alarms() {

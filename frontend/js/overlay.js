@@ -2,7 +2,7 @@
 // to image pixels for that very frame, so drawing is a scale + offset away: nothing here does
 // geometry, which keeps the picture and the lines in step by construction.
 
-import { fmtDistance } from "./format.js";
+import { fmtMeasured } from "./format.js";
 import { colors } from "./theme.js";
 
 /** Letterbox the source image (w x h px) into the canvas's CSS box; sizes the backing store for
@@ -209,7 +209,7 @@ function drawTarget(ctx, [x, y], t, c, trusted, right, placed) {
   ctx.strokeStyle = col;
   ring(ctx, x, y);
   const name = t.label || t.id;
-  const text = `${name}  ${fmtDistance(t.distance_m)} m`;
+  const text = `${name}  ${fmtMeasured(t.distance_m, t.distance_sigma_m)}`;
   ctx.font = "700 17px system-ui, sans-serif";
   const w = ctx.measureText(text).width;
   // right of the mark, or left of it near the right edge of the picture; above it, else
@@ -224,7 +224,7 @@ function drawTarget(ctx, [x, y], t, c, trusted, right, placed) {
       if (free(box(lx, ly))) { at = [lx, ly]; break search; }
     }
   }
-  placed.push(box(at[0], at[1]));
+  placed.push([...box(at[0], at[1]), text]);
   label(ctx, at[0], at[1], text, col, c.targetBg, 17);
 }
 

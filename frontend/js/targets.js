@@ -3,7 +3,7 @@
 // Distances with the digits their range deserves (format.js).
 // Rows are updated in place (not rebuilt) so a remove button stays clickable at 10 fps.
 
-import { fmtDistance } from "./format.js";
+import { fmtDistance, fmtSigma } from "./format.js";
 
 export class Targets {
   /** @param {(id: string) => void} onRemove */
@@ -24,7 +24,7 @@ export class Targets {
       const row = this.rows.get(t.id) || this._row(t.id);
       row.name.textContent = t.label || t.id;
       // ±1σ of the distance (from the 3-D point's covariance): how far to trust it
-      const sigma = t.distance_sigma_m == null ? "" : `±${t.distance_sigma_m.toFixed(2)} m · `;
+      const sigma = t.distance_sigma_m == null ? "" : `${fmtSigma(t.distance_sigma_m)} m · `;
       row.dist.textContent = `${fmtDistance(t.distance_m)} m`;
       row.sub.textContent = `${sigma}hull ${fmtDistance(t.hull_distance_m)} m${t.visible ? "" : " · out of view"}`;
     }
