@@ -320,6 +320,25 @@ def excess_disagreement(x_a: np.ndarray, P_a: np.ndarray, x_b: np.ndarray, P_b: 
     return max(extra, 0.0) * np.outer(u, u)
 
 
+def split_disagreement(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
+                       xy: np.ndarray, ray_var: np.ndarray, x_prior: np.ndarray,
+                       info_prior: np.ndarray, a: np.ndarray, b: np.ndarray,
+                       min_views: int = 3) -> np.ndarray:
+    """(3,3): ``excess_disagreement`` of one point triangulated (``triangulate_point``)
+    from the views ``a`` and from the views ``b`` (indexes, each in the order trusted);
+    zero unless each side gives ``min_views``."""
+    halves = []
+    for r in (np.asarray(a, int), np.asarray(b, int)):
+        if len(r) < min_views:
+            return np.zeros((3, 3))
+        X, info, used = triangulate_point(C_level_to_camera[r], camera_position_ned[r], xy[r],
+                                          ray_var[r], x_prior, info_prior)
+        if used.sum() < min_views or not np.isfinite(X).all():
+            return np.zeros((3, 3))
+        halves.append((X, np.linalg.inv(info)))
+    return excess_disagreement(*halves[0], *halves[1])
+
+
 def _retriangulated(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
                     xy: np.ndarray, ray_var: np.ndarray, X: np.ndarray, x_prior: np.ndarray,
                     info_prior: np.ndarray, iterations: int = 3) -> np.ndarray:

@@ -75,8 +75,8 @@ from .landmarks import (
     common_drift_jacobian,
     common_rotation_jacobian,
     converged,
-    excess_disagreement,
     ray_prior,
+    split_disagreement,
     triangulate_point,
 )
 from .records import CameraCalibration, CameraView
@@ -710,25 +710,6 @@ def structure_point_at(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: n
     return None
 
 
-def split_disagreement(C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
-                       xy: np.ndarray, ray_var: np.ndarray, x_prior: np.ndarray,
-                       info_prior: np.ndarray, a: np.ndarray, b: np.ndarray,
-                       min_views: int = 3) -> np.ndarray:
-    """(3,3): ``excess_disagreement`` of one point triangulated (``triangulate_point``)
-    from the views ``a`` and from the views ``b`` (indexes, each in the order trusted);
-    zero unless each side gives ``min_views``."""
-    halves = []
-    for r in (np.asarray(a, int), np.asarray(b, int)):
-        if len(r) < min_views:
-            return np.zeros((3, 3))
-        X, info, used = triangulate_point(C_level_to_camera[r], camera_position_ned[r], xy[r],
-                                          ray_var[r], x_prior, info_prior)
-        if used.sum() < min_views or not np.isfinite(X).all():
-            return np.zeros((3, 3))
-        halves.append((X, np.linalg.inv(info)))
-    return excess_disagreement(*halves[0], *halves[1])
-
-
 class _SeenViews:
     """A designated target's tracked views, in time order: time, undistorted normalised
     pixel, the seconds the track had gone unanchored by then (``DesignatedTarget.unanchored_s``)
@@ -1063,11 +1044,9 @@ class DesignatedTarget:
         each side. ``rows``: the solved views, nearest the click first — all of them: those
         the triangulation's gates left out are a half's evidence too."""
         seen = self.seen
-        after = rows[seen.t[rows] > self.click_time]
-        by_time = after[np.argsort(seen.t[after], kind="stable")]
-        newer = np.isin(rows, by_time[len(by_time) // 2:])
-        splits = ((rows[seen.t[rows] < self.click_time], after),
-                  (rows[np.isin(rows, after) & ~newer], rows[newer]))
+        after = rows[seen.t[rows] > self.click_time]  # nearest the click first: oldest first
+        half = len(after) // 2
+        splits = ((rows[seen.t[rows] < self.click_time], after), (after[:half], after[half:]))
         excess = np.zeros((3, 3))
         for a, b in splits:
             E = split_disagreement(seen.C, seen.centre, seen.xy,

@@ -778,8 +778,7 @@ def test_a_forward_track_sliding_late_shows_in_its_halves_disagreement():
     pulled 0.24 m off with a σ of 5 cm; the older and the newer half of the views
     disagree beyond their own covariances, and that excess (``split_disagreement``) covers
     the error. Without the slide the halves agree: nothing is added."""
-    from estimator.landmarks import triangulate_point
-    from estimator.tracking import split_disagreement
+    from estimator.landmarks import split_disagreement, triangulate_point
     m, f = 40, 800.0
     C, centres, X, xy = baseline_views(m)
     var = np.full(m, (1.5 / f) ** 2)
