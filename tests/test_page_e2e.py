@@ -501,7 +501,11 @@ def _quay_point(f: dict) -> tuple[int, list[float]]:
 
 def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
     wait_trusted(page)
-    f = wait_frame(page, "f => f.overlay && f.overlay.video.points.uv.length > 20")
+    wait_frame(page, "f => f.overlay && f.overlay.video.points.uv.length > 20")
+    # Paused, the frame we pick the point on is the one the click designates on (playing, a
+    # newer frame can arrive between reading it and the click: the scene pans ~4 px a frame).
+    pause(page)
+    f = frame(page)
     pid, uv = _quay_point(f)
     page.mouse.click(*css_point(page, "overlay", *uv))
     f1 = wait_frame(page, "f => f.overlay.targets.length === 1")
@@ -517,6 +521,7 @@ def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
     shot(page, "04_target_designated")
 
     # frames later the label is still there, on the same quay point, with a new distance
+    page.click("#play")
     f2 = wait_frame(page, f"f => f.t > {f1['t']} + 2.0 && f.overlay.targets.length === 1")
     t2 = f2["overlay"]["targets"][0]
     assert t2["id"] == t1["id"] and t2["visible"]
