@@ -76,6 +76,9 @@ class _Seen:
     C_level_to_camera: np.ndarray  # fused
     camera_position_ned: np.ndarray  # fused
     attitude_sigma: float  # fused, rad (largest axis)
+    # the fused velocity's covariance (3,3) in L, (m/s)², while the fused track is not on the
+    # carrier phase (coasting); zero while it is (its displacement then good to millimetres)
+    coasting_velocity_cov: np.ndarray
 
 
 
@@ -92,7 +95,11 @@ class VoConsistency:
     A window disagrees beyond the χ² gate of the variance the EKF's VO model allows over it:
     the VO world's rotation drift (``vo_attitude_psd`` per second, ``vo_attitude_per_m`` per
     metre), its origin's drift and position noise across the travel, and the fused
-    attitude's σ."""
+    attitude's σ — and, when the fused track is not on the carrier phase, the fused
+    displacement's own error: its velocity σ over the window. With the carrier phase that is
+    millimetres; without it (satellites blocked) the fused track is the INS coasting, whose
+    velocity error soon turns its direction of travel by degrees, and a right VO judged by it
+    as if it were the carrier phase would be excluded again and again."""
 
     def __init__(self, cfg: EkfConfig, C_camera_to_body: np.ndarray) -> None:
         self.cfg = cfg
@@ -140,9 +147,15 @@ class VoConsistency:
             return None
         u = vo / np.linalg.norm(vo)
         across = float(np.linalg.norm(fused - (fused @ u) * u))  # m, off the VO's direction
+        # the fused displacement's error across u (per axis of the 2 across it): its velocity
+        # error held over the window, the larger of the two ends'
+        Q = np.eye(3) - np.outer(u, u)
+        C = old.C_level_to_camera
+        fused_var = max(float(np.trace(Q @ C @ e.coasting_velocity_cov @ C.T @ Q))
+                        for e in (old, now))
         var = (cfg.vo_drift_psd * (now.t - old.t) + cfg.vo_drift_per_m * travel
                + 2.0 * cfg.vo_position_sigma**2 + (cfg.vo_position_relative * travel) ** 2
-               + (old.attitude_sigma * travel) ** 2)
+               + (old.attitude_sigma * travel) ** 2 + 0.5 * fused_var * (now.t - old.t) ** 2)
         return VoDisagreement("direction of travel", math.asin(min(1.0, across / travel)),
                               now.t - old.t, across**2 / var)
 
@@ -219,7 +232,8 @@ class VoCoupling:
             t, out.segment, np.asarray(out.C_world_to_camera, float),
             np.asarray(out.camera_position_world, float), ekf.ins.C_gyro.copy(),
             ekf.camera_attitude(), ekf.camera_position(),
-            math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0))))
+            math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0)),
+            np.zeros((3, 3)) if carrier_fresh else ekf.P[ekf.ix.V, ekf.ix.V].copy()))
         if bad is not None:
             off = f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}° off over {bad.window_s:.0f} s"
             if not self.excluded:

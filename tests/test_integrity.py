@@ -14,6 +14,7 @@ import pytest
 
 from backend.alarms import AlarmBook
 from engine.driver import VoPass, run_vo
+from engine.messages import group_gnss
 from estimator.integrity import FrameCheck, IntegrityConfig, IntegrityMonitor
 from estimator.pipeline import FusionOptions
 from evaluation.integrity import integrity_scores
@@ -299,21 +300,55 @@ def test_a_vo_whose_world_stays_wrong_is_restarted_and_taken_back_once_it_agrees
     assert ig.misleading_epochs == 0, ig
 
 
-def _bent(vo: VoPass, start_gpst: float, bend_deg: float) -> VoPass:
+def _bent(vo: VoPass, start_gpst: float, bend_deg: float, end_gpst: float = math.inf
+          ) -> VoPass:
     """The VO's travel turned by ``bend_deg`` about its world's vertical from ``start_gpst`` on,
     its rotations left as they are: a map built on a wrong two-view geometry, which keeps the
-    gyro's rotation and travels off to one side."""
+    gyro's rotation and travels off to one side. From ``end_gpst`` on it travels true again
+    (from where the bend left it)."""
     a = math.radians(bend_deg)
     R = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0],
                   [-math.sin(a), 0.0, math.cos(a)]])
-    outs, pivot = [], {}
+    outs, pivot, stop = [], {}, {}
     for o in vo.outputs:
         if o.time >= start_gpst and o.camera_position_world is not None:
             p = np.asarray(o.camera_position_world, float)
             p0 = pivot.setdefault(o.segment, p)
-            o = dataclasses.replace(o, camera_position_world=p0 + R @ (p - p0))
+            if o.time < end_gpst:
+                q = p0 + R @ (p - p0)
+            else:
+                p1 = stop.setdefault(o.segment, p)
+                q = p0 + R @ (p1 - p0) + (p - p1)
+            o = dataclasses.replace(o, camera_position_world=q)
         outs.append(o)
     return VoPass(outs, vo.vo_ms, vo.decode_ms)
+
+
+def test_a_vo_excluded_as_the_satellites_go_is_taken_back_while_the_ins_coasts(
+        tmp_path: Path) -> None:
+    """The VO travels 30° off for 3 s just as every satellite is lost (20 s after the first
+    epoch), then true again; the accelerometer has shifted by 0.03 m/s² (a MEMS bias step).
+    Excluded while the carrier phase still holds the fused track; from then on the fused
+    track is the INS coasting, its velocity error growing, and the check weighs that error
+    (the fused velocity σ) once the carrier phase is stale: the VO, right again, is taken
+    back within seconds, for good, and holds the position within a metre and a half. Judged against the coasting INS as if it were the carrier
+    phase, it was excluded again and again and the position coasted 14 m off (on a yardstick
+    seed's 0-satellite run, 34 m)."""
+    src = Path(__file__).resolve().parents[1] / "recordings" / "default"
+    start = load(src).manifest.start_gpst
+    first_epoch = group_gnss(load(src))[0].t
+    rec = load(inject(src, f"imu-bias:{first_epoch - start + 20.0:.1f}:0.03", tmp_path / "rec"))
+    end = start + 50.0
+    vo = _bent(run_vo(rec, end), first_epoch + 18.5, 30.0, first_epoch + 21.5)
+    options = FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m,
+                            keep_after_s=20.0, satellites_keep=[], **OPTIONS)
+    run = fuse(rec, vo, options, "bent, biased, no satellites", end)
+    alerts = [(a.t - first_epoch, a.active) for a in run.alerts if a.kind == "vo-inconsistent"]
+    assert len(alerts) == 2 and alerts[0][1] and not alerts[1][1], alerts
+    assert 18.5 <= alerts[0][0] <= 21.5 and alerts[1][0] <= 21.5 + 8.0, alerts
+    err = run_errors(run, rec.reference, start, first_epoch + 20.0)
+    horizontal = np.linalg.norm(err.position[:, :2], axis=1)[err.window]
+    assert np.nanmax(horizontal) < 1.5, np.nanmax(horizontal)
 
 
 def test_a_vo_travelling_off_its_direction_is_excluded(sim_recording: Path, clean_vo: VoPass,
