@@ -48,7 +48,10 @@ Adaptations to a quay point tracked for minutes from a ship (documented deviatio
 - Loss: ``N`` below ``lost_score``, or the estimate leaving the image. When lost, ``update``
   keeps dead-reckoning the point with the flow and only reports ``tracking`` again when the
   template is found again with ``reacquire_score``; ``reacquire(image, uv_pred)`` searches
-  around a predicted position (the target's 3-D point projected with the fused pose).
+  around a predicted position (the target's 3-D point projected with the fused pose). A
+  find after a loss has no continuity to decide between look-alikes (a row of fenders): it
+  is taken only when no other place in the search window scores within
+  ``ambiguity_margin`` of it (``_refind``); else the target stays lost.
 
 ``method`` selects the full method or the two ablations of the paper's fig. 7: ``template``
 (adaptive template matching alone, searched around the previous position) and
@@ -221,8 +224,10 @@ class TargetTracker:
         need = p.reacquire_score if min_score is None else float(min_score)
         pred = np.asarray(uv_pred, float).reshape(2)
         size = np.array(gray.shape[::-1], float)
-        match = _match(gray, self.template, pred, int(math.ceil(radius_px)))
-        if match is not None and match[1] >= need and self._inside(match[0], size):
+        match = _refind(gray, self.template, pred, int(math.ceil(radius_px)),
+                        p.ambiguity_margin)
+        if match is not None and match[1] >= need and self._inside(match[0], size) \
+                and not match[2]:
             q = match[0]
             self.particles = q + self.rng.normal(0.0, 0.5 * p.sigma_d_px,
                                                  (p.n_particles, 2))
@@ -236,7 +241,8 @@ class TargetTracker:
         score = -1.0 if match is None else match[1]
         return TrackResult(uv=None, score=score, status="lost", particles=self.particles.copy(),
                            uv_match=None if match is None else match[0],
-                           reason="not found near the predicted position")
+                           reason=_LOOK_ALIKES if match is not None and match[2] and
+                           match[1] >= need else "not found near the predicted position")
 
     def follow_flow(self, image: np.ndarray) -> TrackResult:
         """One frame, the template matched only within ``flow_search_px`` of where the mean
@@ -327,8 +333,9 @@ class TargetTracker:
         """While lost: dead-reckon with the flow; come back only on a confident match."""
         p = self.params
         self.particles = cloud
-        match = _match(gray, self.template, predicted, p.lost_search_px)
-        if match is not None and match[1] >= p.reacquire_score and self._inside(match[0], size):
+        match = _refind(gray, self.template, predicted, p.lost_search_px, p.ambiguity_margin)
+        if match is not None and match[1] >= p.reacquire_score and self._inside(match[0], size) \
+                and not match[2]:
             q = match[0]
             self.particles = q + self.rng.normal(0.0, 0.5 * p.sigma_d_px, cloud.shape)
             self.uv = q.copy()
@@ -339,7 +346,8 @@ class TargetTracker:
         return TrackResult(uv=None, score=-1.0 if match is None else match[1], status="lost",
                            particles=self.particles.copy(),
                            uv_match=None if match is None else match[0], flow=flow,
-                           reason="lost: waiting for the template to reappear")
+                           reason=_LOOK_ALIKES if match is not None and match[2] else
+                           "lost: waiting for the template to reappear")
 
     def _declare_lost(self, where: np.ndarray, particles: np.ndarray, flow: np.ndarray,
                       size: np.ndarray, score: float, reason: str) -> TrackResult:
@@ -865,6 +873,19 @@ class DesignatedTarget:
         uv, _ = cv2.projectPoints(xc[None], np.zeros(3), np.zeros(3), self._K, self._dist)
         return uv.reshape(2)
 
+    def _projected_cov(self, pred: np.ndarray, view: CameraView) -> np.ndarray | None:
+        """(2,2) px²: the 3-D point's covariance projected at ``pred`` with the tracker's
+        pixel noise; None at the camera (nothing to judge by)."""
+        X, step = self.map.x[0], 0.01  # m: the projection's Jacobian by differences
+        J = np.empty((2, 3))
+        for i in range(3):
+            q = self.project(view.C_level_to_camera, view.position_ned,
+                             X + step * np.eye(3)[i])
+            if q is None:
+                return None
+            J[:, i] = (q - pred) / step
+        return J @ self.covariance @ J.T + self.params.landmark.pixel_sigma_px ** 2 * np.eye(2)
+
     def _beyond_reach(self, uv: np.ndarray, pred: np.ndarray, view: CameraView) -> bool:
         """Whether an image find at ``uv`` is farther from the 3-D point's projection
         ``pred`` than both the re-acquisition radius and the point's own uncertainty (its
@@ -873,16 +894,17 @@ class DesignatedTarget:
         d = np.asarray(uv, float) - pred
         if np.linalg.norm(d) <= self.params.reacquire_radius_px:
             return False
-        X, step = self.map.x[0], 0.01  # m: the projection's Jacobian by differences
-        J = np.empty((2, 3))
-        for i in range(3):
-            q = self.project(view.C_level_to_camera, view.position_ned,
-                             X + step * np.eye(3)[i])
-            if q is None:
-                return False  # at the camera: nothing to judge by
-            J[:, i] = (q - pred) / step
-        S = J @ self.covariance @ J.T + self.params.landmark.pixel_sigma_px ** 2 * np.eye(2)
-        return float(d @ np.linalg.solve(S, d)) > self.map.gate
+        S = self._projected_cov(pred, view)
+        return S is not None and float(d @ np.linalg.solve(S, d)) > self.map.gate
+
+    def _predicts(self, pred: np.ndarray, view: CameraView) -> bool:
+        """Whether the 3-D point's projection ``pred`` is sure enough to take the target back
+        at: its uncertainty's χ² gate within the re-acquisition radius. A point placed on the
+        water plane, tens of metres deep along its ray, projects anywhere along the ray's
+        image once the ship has moved: what its radius holds is some other thing."""
+        S = self._projected_cov(pred, view)
+        return S is not None and \
+            self.map.gate * float(np.linalg.eigvalsh(S)[-1]) <= self.params.reacquire_radius_px ** 2
 
     def update(self, image: np.ndarray, view: CameraView) -> TargetState:
         """One frame and the fused camera pose at its time."""
@@ -904,7 +926,7 @@ class DesignatedTarget:
             self.tracker.status = "lost"
             res = replace(res, uv=None, status="lost",
                           reason="found again away from its 3-D point")
-        if res.status != "tracking" and in_view:
+        if res.status != "tracking" and in_view and self._predicts(pred, view):
             res = self.tracker.reacquire(image, pred, p.reacquire_radius_px)
             reacquired = res.status == "tracking"
             self.reacquisitions += int(reacquired)
@@ -919,8 +941,10 @@ class DesignatedTarget:
         h, w = image.shape[:2]
         in_view = pred is not None and -0.5 <= pred[0] <= w - 0.5 and -0.5 <= pred[1] <= h - 0.5
         self.tracker.status = "lost"
-        if in_view:
+        if in_view and self._predicts(pred, view):
             res = self.tracker.reacquire(image, pred, self.params.reacquire_radius_px)
+        elif in_view:
+            res = self.tracker.hold(image, "its 3-D point is too uncertain to look for it")
         else:
             res = self.tracker.hold(image, "its 3-D point is out of the image")
         reacquired = res.status == "tracking"
@@ -1125,10 +1149,13 @@ def _crop(gray: np.ndarray, q: np.ndarray, window: tuple[int, int]) -> np.ndarra
     return cv2.getRectSubPix(gray, window, (float(q[0]), float(q[1])))
 
 
-def _match(gray: np.ndarray, template: np.ndarray, centre: np.ndarray, radius: int
-           ) -> tuple[np.ndarray, float] | None:
-    """Best TM_CCOEFF_NORMED match of ``template`` whose centre is within ``radius`` of
-    ``centre``: (sub-pixel centre, score), None when the search window is off the image."""
+_LOOK_ALIKES = "look-alikes in reach: not taken back"
+
+
+def _correlation(gray: np.ndarray, template: np.ndarray, centre: np.ndarray, radius: int
+                 ) -> tuple[np.ndarray, int, int] | None:
+    """TM_CCOEFF_NORMED of ``template`` at every centre within ``radius`` of ``centre``, and
+    the image position of the map's origin; None when the search window is off the image."""
     th, tw = template.shape
     H, W = gray.shape
     cx, cy = int(round(centre[0])), int(round(centre[1]))
@@ -1138,12 +1165,45 @@ def _match(gray: np.ndarray, template: np.ndarray, centre: np.ndarray, radius: i
     y1 = min(H, cy + radius + th // 2 + 1)
     if x1 - x0 < tw or y1 - y0 < th:
         return None
-    res = cv2.matchTemplate(gray[y0:y1, x0:x1], template, cv2.TM_CCOEFF_NORMED)
+    return cv2.matchTemplate(gray[y0:y1, x0:x1], template, cv2.TM_CCOEFF_NORMED), x0, y0
+
+
+def _peak(res: np.ndarray, x0: int, y0: int, template: np.ndarray
+          ) -> tuple[np.ndarray, float, int, int]:
+    """(sub-pixel centre in the image, score, column, row in the map) of the map's best."""
+    th, tw = template.shape
     _, score, _, (mx, my) = cv2.minMaxLoc(res)
     dx = _parabola(res, mx, my, axis=1)
     dy = _parabola(res, mx, my, axis=0)
-    q = np.array([x0 + mx + tw // 2 + dx, y0 + my + th // 2 + dy], float)
-    return q, float(score)
+    return np.array([x0 + mx + tw // 2 + dx, y0 + my + th // 2 + dy], float), float(score), \
+        mx, my
+
+
+def _match(gray: np.ndarray, template: np.ndarray, centre: np.ndarray, radius: int
+           ) -> tuple[np.ndarray, float] | None:
+    """Best TM_CCOEFF_NORMED match of ``template`` whose centre is within ``radius`` of
+    ``centre``: (sub-pixel centre, score), None when the search window is off the image."""
+    found = _correlation(gray, template, centre, radius)
+    if found is None:
+        return None
+    q, score, _, _ = _peak(*found, template)
+    return q, score
+
+
+def _refind(gray: np.ndarray, template: np.ndarray, centre: np.ndarray, radius: int,
+            margin: float) -> tuple[np.ndarray, float, bool] | None:
+    """``_match`` and whether it is ambiguous: another local maximum of the correlation, more
+    than half a template from the best, scores within ``margin`` of it (a look-alike)."""
+    found = _correlation(gray, template, centre, radius)
+    if found is None:
+        return None
+    res = found[0]
+    q, score, mx, my = _peak(*found, template)
+    rows, cols = np.indices(res.shape)
+    far = (cols - mx) ** 2 + (rows - my) ** 2 > (0.5 * template.shape[1]) ** 2
+    local_max = res >= cv2.dilate(res, np.ones((3, 3), np.uint8))
+    others = res[far & local_max]
+    return q, score, bool(len(others) and float(others.max()) >= score - margin)
 
 
 def _parabola(res: np.ndarray, x: int, y: int, axis: int) -> float:

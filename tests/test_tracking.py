@@ -283,6 +283,40 @@ def test_a_find_away_from_its_3d_point_does_not_take_the_target_back(panning):
     assert pasted >= 3
 
 
+def test_a_point_too_uncertain_to_predict_takes_nothing_back_at_its_projection(along_path):
+    """A click the structure did not place: its point where the ray meets the water plane,
+    tens of metres deep along the ray (σ 40 m), 60 m beyond the true one. After a seek the
+    point's projection says little — the ray's image spans hundreds of pixels once the ship
+    has moved — and a look-alike of the target sits there: the target is not taken back at
+    it (dev seed 308: a fender "re-acquired" on another thing, whose track then triangulated
+    110 m off with a σ of 7.5 m). Placed well, the same seek takes it back (the test above)."""
+    seq, point = along_path
+    truth = seq.truth(point)
+    C0, p0 = seq.poses[0]
+    ray = (point - p0) / np.linalg.norm(point - p0)
+    wrong = point + 60.0 * ray
+    cov = 40.0 ** 2 * np.outer(ray, ray) + 0.3 ** 2 * np.eye(3)
+    pose_cov = np.diag([1e-4] * 3 + [np.radians(0.02) ** 2] * 3)
+    tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], wrong, cov,
+                           CameraView(math.nan, C0, p0, pose_cov), params=TargetParams(),
+                           seed=0)
+    # a seek 30 s on: the ship 6 m to the side of the click's ray
+    k = N_FRAMES - 1
+    side = np.cross(ray, [0.0, 0.0, 1.0])
+    view = CameraView(T0 + 30.0, seq.poses[k][0], seq.poses[k][1] + 6.0 * side / np.linalg.norm(
+        side), pose_cov)
+    pred = tgt.project(view.C_level_to_camera, view.position_ned)
+    true_uv = tgt.project(view.C_level_to_camera, view.position_ned, point)
+    assert pred is not None and np.linalg.norm(pred - true_uv) > 100.0  # it projects elsewhere
+    u0, v0 = np.round(truth[0]).astype(int)
+    image = seq.images[k].copy()
+    u, v = np.round(pred).astype(int)
+    image[v - 20:v + 21, u - 20:u + 21] = seq.images[0][v0 - 20:v0 + 21, u0 - 20:u0 + 21]
+    back = tgt.resume(image, view)
+    assert back.status == "lost" and not back.reacquired, back
+    assert "too uncertain" in back.reason
+
+
 def test_designated_target_reanchors_on_converged_structure(along_path):
     """A target whose 3-D point came 15 % too far along its ray takes its point again from
     the structure around the pixel it tracks — only once the points there have converged
@@ -505,6 +539,48 @@ def test_the_full_tracker_stays_on_its_window_of_a_repeated_facade():
         r = tracker.update(frames[k])
         truth = start + [2.0 * k, 1.0 * k]
         assert r.status == "tracking" and np.linalg.norm(r.uv - truth) < 3.0, (k, r.uv, truth)
+
+
+def fender_row(shift: float, rng: np.random.Generator) -> np.ndarray:
+    """A quay wall with a row of identical dark fenders 40 px apart, moved ``shift`` px to
+    the right, with its own sensor noise (BGR)."""
+    wall = np.full((300, 700), 150.0)
+    x0 = 100 + shift
+    for k in range(12):
+        x = int(round(x0 + 40 * k))
+        wall[135:155, x:x + 14] = 50.0
+    wall = cv2.GaussianBlur(wall, (5, 5), 0) + rng.normal(0.0, 4.0, wall.shape)
+    return cv2.cvtColor(np.clip(wall, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+
+
+def test_a_lost_target_is_not_taken_back_among_look_alikes():
+    """A fender in a row of identical ones, lost on a blank frame; the picture comes back
+    moved half a fender spacing (the camera pitched): the two fenders either side of where
+    the tracker looks score alike, and nothing tells which one was clicked. It stays lost and
+    says why — taken back, it would be on a neighbour as often as not (dev seed 308: a fender
+    re-found 28 px off, then triangulated 4.7 m off with a σ of 0.4 m). Where only one
+    fender is in reach it is taken back."""
+    rng = np.random.default_rng(5)
+    start = np.array([100.0 + 40 * 6 + 7, 145.0])  # the seventh fender's centre
+    tracker = TargetTracker(seed=1)
+    tracker.init(fender_row(0.0, rng), start, 31)
+    for k in range(1, 4):
+        r = tracker.update(fender_row(2.0 * k, rng))
+        assert r.status == "tracking" and np.linalg.norm(r.uv - start - [2.0 * k, 0]) < 1.5
+    blank = np.full_like(fender_row(0.0, rng), 128)
+    assert tracker.update(blank).status == "lost"
+    for _ in range(3):  # every frame from now on: the clicked fender 20 px right
+        r = tracker.update(fender_row(6.0 + 20.0, rng))
+        assert r.status == "lost" and r.uv is None and "look-alikes" in r.reason, r
+    # ... nor at a predicted position with a neighbour as near
+    r = tracker.reacquire(fender_row(26.0, rng), start + [6.0, 0.0], 30.0)
+    assert r.status == "lost" and "look-alikes" in r.reason, r
+    # a single fender in reach is found again
+    lone = fender_row(26.0, rng)
+    lone[:, :int(start[0]) + 6] = lone[:, int(start[0]) + 6:int(start[0]) + 7]
+    lone[:, int(start[0]) + 46:] = lone[:, int(start[0]) + 45:int(start[0]) + 46]
+    r = tracker.reacquire(lone, start + [20.0, 0.0], 30.0)
+    assert r.status == "tracking" and np.linalg.norm(r.uv - start - [26.0, 0]) < 1.5, r
 
 
 def test_nearest_surface_prefers_the_foreground_unless_a_point_is_clicked():
