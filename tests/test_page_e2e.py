@@ -581,6 +581,19 @@ def test_click_on_the_quay_measures_a_locked_distance(page) -> None:
         for b in boxes[i + 1:]:
             assert a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1], (a, b)
 
+    # a lost target says why in the list (and is not drawn on the video)
+    lost = page.evaluate("""() => {
+      const f = structuredClone(window.berthing.frame), t = f.overlay.targets[0];
+      f.overlay.targets = [{...t, id: "lost0", label: "T9 (lost)", uv: null, visible: false,
+        status: "lost", reason: "look-alikes in reach: not taken back"}];
+      window.berthing.show(f);
+      return [document.querySelector('#targets li[data-id="lost0"] .tsub').textContent,
+              window.berthing.labels.length];
+    }""")
+    assert lost[0].endswith(" · lost: look-alikes in reach: not taken back"), lost
+    assert lost[1] == 0, lost
+    shot(page, "04_target_lost_reason")
+
 
 def test_berth_line_from_two_clicks_gives_bow_and_stern(page) -> None:
     # the recording's own berth line is drawn on the quay's water line: the officer's two

@@ -26,7 +26,10 @@ export class Targets {
       // ±1σ of the distance (from the 3-D point's covariance): how far to trust it
       const sigma = t.distance_sigma_m == null ? "" : `${fmtSigma(t.distance_sigma_m)} m · `;
       row.dist.textContent = `${fmtDistance(t.distance_m)} m`;
-      row.sub.textContent = `${sigma}hull ${fmtDistance(t.hull_distance_m)} m${t.visible ? "" : " · out of view"}`;
+      // lost: why (the tracker's reason: out of the image, look-alikes, too uncertain a point)
+      const state = t.status === "lost" ? ` · lost: ${t.reason || "not found"}`
+        : t.visible ? "" : " · out of view";
+      row.sub.textContent = `${sigma}hull ${fmtDistance(t.hull_distance_m)} m${state}`;
     }
     for (const [id, row] of this.rows) {
       if (!seen.has(id)) { row.li.remove(); this.rows.delete(id); }
