@@ -331,9 +331,10 @@ def test_a_vo_excluded_as_the_satellites_go_is_taken_back_while_the_ins_coasts(
     Excluded while the carrier phase still holds the fused track; from then on the fused
     track is the INS coasting, its velocity error growing, and the check weighs that error
     (the fused velocity σ) once the carrier phase is stale: the VO, right again, is taken
-    back within seconds, for good, and holds the position within a metre and a half. Judged against the coasting INS as if it were the carrier
-    phase, it was excluded again and again and the position coasted 14 m off (on a yardstick
-    seed's 0-satellite run, 34 m)."""
+    back within seconds, for good, and holds the position within a metre and a half. Judged
+    against the coasting INS as if it were the carrier phase, it was excluded again and
+    again and the position coasted 14 m off (a yardstick seed's 0-satellite run with the LK
+    backward pass dropped: 34 m)."""
     src = Path(__file__).resolve().parents[1] / "recordings" / "default"
     start = load(src).manifest.start_gpst
     first_epoch = group_gnss(load(src))[0].t
