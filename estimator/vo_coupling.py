@@ -196,7 +196,8 @@ class VoCoupling:
                timed: Callable[[str, float], None], carrier_fresh: bool = True) -> None:
         """One VO output at its time (the INS is there): map a new segment, or update the
         EKF with Θ and d and the landmarks with the views. ``carrier_fresh``: the fused track
-        rests on the carrier phase now (a wrong VO world may then be restarted)."""
+        rests on the carrier phase now (a wrong VO world may then be restarted; else the
+        check weighs the coasting track's own velocity σ)."""
         if out.status != "tracking" or out.C_world_to_camera is None \
                 or out.camera_position_world is None:
             if out.status == "lost":
