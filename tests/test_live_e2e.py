@@ -82,7 +82,7 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     udp.bind(("127.0.0.1", udp_port))
     udp.settimeout(0.05)
-    procs = []
+    procs, page = [], None
     with (ARTIFACTS / "live-emulator.log").open("w") as emu_log, \
             (ARTIFACTS / "live-server.log").open("w") as srv_log:
         emu = subprocess.Popen(
@@ -115,10 +115,10 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
             live = next(s for s in sessions if s["live"] is not None)
             tcp = socket.create_connection(("127.0.0.1", tcp_port), timeout=5)
             tcp.settimeout(0.05)
-            datagrams, stream, page = [], bytearray(), None
+            datagrams, stream = [], bytearray()
             if CHROMIUM.exists():
                 page = _open_page(base)
-            frames_seen = []
+            frames_seen, caught_up = [], ""
             # until the emulator has played the recording and the session has caught up
             progress = (-1, time.monotonic())
             while emu.poll() is None or time.monotonic() - progress[1] < 2.0:
@@ -128,6 +128,7 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
                     camera = next(i for i in st["live"]["inputs"] if i["name"] == "camera")
                     if n != progress[0] or n < camera["received"] - camera["late"]:
                         progress = (n, time.monotonic())
+                    caught_up = f"frames processed {n}, camera {camera}"
                 with contextlib.suppress(TimeoutError):
                     datagrams.append(udp.recv(2048))
                 with contextlib.suppress(TimeoutError):
@@ -137,7 +138,8 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
                         "() => ({f: window.berthing.frame?.frame ?? null, "
                         "rec: document.querySelector('#st-rec').hidden ? null : "
                         "document.querySelector('#st-rec').textContent})"))
-                assert time.monotonic() < deadline + 120, "the live run did not end"
+                assert time.monotonic() < deadline + 120, \
+                f"the live run did not end ({caught_up or 'the emulator still playing'})"
             status = json.loads(_get(f"{base}/api/sessions/{live['id']}"))
             live_traj = _trajectory(base, live["id"])
             replay = _post(base + "/api/sessions", {"recording": sim_recording.name,
@@ -148,8 +150,9 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
             replay_traj = _trajectory(base, replay["id"])
             if page is not None:
                 page[1].screenshot(path=str(ARTIFACTS / "live-page.png"))
-                page[0].close()
         finally:
+            if page is not None:  # else its Playwright loop outlives the fixture, and every
+                page[0].close()  # later page test fails to start its own
             for p in reversed(procs):  # the server first: it closes the live recording
                 p.terminate()
                 try:
