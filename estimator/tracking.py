@@ -220,29 +220,18 @@ class TargetTracker:
             raise RuntimeError("TargetTracker.reacquire before init")
         gray = _gray(image)
         self._prev_gray = gray
-        p = self.params
-        need = p.reacquire_score if min_score is None else float(min_score)
+        need = self.params.reacquire_score if min_score is None else float(min_score)
         pred = np.asarray(uv_pred, float).reshape(2)
-        size = np.array(gray.shape[::-1], float)
-        match = _refind(gray, self.template, pred, int(math.ceil(radius_px)),
-                        p.ambiguity_margin)
-        if match is not None and match[1] >= need and self._inside(match[0], size) \
-                and not match[2]:
-            q = match[0]
-            self.particles = q + self.rng.normal(0.0, 0.5 * p.sigma_d_px,
-                                                 (p.n_particles, 2))
-            self.uv = q.copy()
-            self.status = "tracking"
-            return TrackResult(uv=q.copy(), score=match[1], status="tracking",
-                               particles=self.particles.copy(), uv_match=q.copy())
+        back, score, seen_at, look_alikes = self._find_again(gray, pred,
+                                                             int(math.ceil(radius_px)), need)
+        if back is not None:
+            return back
         self.status = "lost"
-        if self._inside(pred, size):
+        if self._inside(pred, np.array(gray.shape[::-1], float)):
             self.uv = pred.copy()
-        score = -1.0 if match is None else match[1]
         return TrackResult(uv=None, score=score, status="lost", particles=self.particles.copy(),
-                           uv_match=None if match is None else match[0],
-                           reason=_LOOK_ALIKES if match is not None and match[2] and
-                           match[1] >= need else "not found near the predicted position")
+                           uv_match=seen_at, reason=_LOOK_ALIKES if look_alikes else
+                           "not found near the predicted position")
 
     def follow_flow(self, image: np.ndarray) -> TrackResult:
         """One frame, the template matched only within ``flow_search_px`` of where the mean
@@ -278,7 +267,7 @@ class TargetTracker:
         cloud = self._camshift(image, cloud)
         predicted = self.uv + flow
         if self.status == "lost":
-            return self._lost_step(gray, predicted, cloud, flow, size)
+            return self._lost_step(gray, predicted, cloud, flow)
         # Step 2: weights from the best normalised-correlation match p̂ (eq. 19).
         match = _match(gray, self.template, predicted, p.search_px + int(2 * p.sigma_d_px))
         if match is None:
@@ -329,25 +318,42 @@ class TargetTracker:
                            particles=self.particles.copy(), uv_match=p_hat.copy(), flow=flow)
 
     def _lost_step(self, gray: np.ndarray, predicted: np.ndarray, cloud: np.ndarray,
-                   flow: np.ndarray, size: np.ndarray) -> TrackResult:
+                   flow: np.ndarray) -> TrackResult:
         """While lost: dead-reckon with the flow; come back only on a confident match."""
         p = self.params
         self.particles = cloud
-        match = _refind(gray, self.template, predicted, p.lost_search_px, p.ambiguity_margin)
-        if match is not None and match[1] >= p.reacquire_score and self._inside(match[0], size) \
-                and not match[2]:
-            q = match[0]
-            self.particles = q + self.rng.normal(0.0, 0.5 * p.sigma_d_px, cloud.shape)
-            self.uv = q.copy()
-            self.status = "tracking"
-            return TrackResult(uv=q.copy(), score=match[1], status="tracking",
-                               particles=self.particles.copy(), uv_match=q.copy(), flow=flow)
+        back, score, seen_at, look_alikes = self._find_again(gray, predicted, p.lost_search_px,
+                                                             p.reacquire_score, flow)
+        if back is not None:
+            return back
         self.uv = predicted
-        return TrackResult(uv=None, score=-1.0 if match is None else match[1], status="lost",
-                           particles=self.particles.copy(),
-                           uv_match=None if match is None else match[0], flow=flow,
-                           reason=_LOOK_ALIKES if match is not None and match[2] else
-                           "lost: waiting for the template to reappear")
+        return TrackResult(uv=None, score=score, status="lost", particles=self.particles.copy(),
+                           uv_match=seen_at, flow=flow, reason=_LOOK_ALIKES if look_alikes
+                           else "lost: waiting for the template to reappear")
+
+    def _find_again(self, gray: np.ndarray, centre: np.ndarray, radius: int, need: float,
+                    flow: np.ndarray | None = None
+                    ) -> tuple[TrackResult | None, float, np.ndarray | None, bool]:
+        """After a loss: the template's best match within ``radius`` of ``centre``. Taken back
+        — the target tracking again there, its result returned first — when it correlates
+        at least ``need``, lies inside the image and no look-alike is in reach
+        (``_refind``). Otherwise (None, its score or −1, where it was, whether look-alikes
+        alone kept it from being taken)."""
+        p = self.params
+        match = _refind(gray, self.template, centre, radius, p.ambiguity_margin)
+        if match is None:
+            return None, -1.0, None, False
+        q, score, ambiguous = match
+        if score < need or not self._inside(q, np.array(gray.shape[::-1], float)):
+            return None, score, q, False
+        if ambiguous:
+            return None, score, q, True
+        self.particles = q + self.rng.normal(0.0, 0.5 * p.sigma_d_px, (p.n_particles, 2))
+        self.uv = q.copy()
+        self.status = "tracking"
+        return TrackResult(uv=q.copy(), score=score, status="tracking",
+                           particles=self.particles.copy(), uv_match=q.copy(), flow=flow), \
+            score, q, False
 
     def _declare_lost(self, where: np.ndarray, particles: np.ndarray, flow: np.ndarray,
                       size: np.ndarray, score: float, reason: str) -> TrackResult:

@@ -77,8 +77,8 @@ class _Seen:
     camera_position_ned: np.ndarray  # fused
     attitude_sigma: float  # fused, rad (largest axis)
     # the fused velocity's covariance (3,3) in L, (m/s)², while the fused track is not on the
-    # carrier phase (coasting); zero while it is (its displacement then good to millimetres)
-    coasting_velocity_cov: np.ndarray
+    # carrier phase (coasting); None while it is (its displacement then good to millimetres)
+    coasting_velocity_cov: np.ndarray | None
 
 
 
@@ -151,8 +151,8 @@ class VoConsistency:
         # error held over the window, the larger of the two ends'
         Q = np.eye(3) - np.outer(u, u)
         C = old.C_level_to_camera
-        fused_var = max(float(np.trace(Q @ C @ e.coasting_velocity_cov @ C.T @ Q))
-                        for e in (old, now))
+        fused_var = max((float(np.trace(Q @ C @ e.coasting_velocity_cov @ C.T @ Q))
+                         for e in (old, now) if e.coasting_velocity_cov is not None), default=0.0)
         var = (cfg.vo_drift_psd * (now.t - old.t) + cfg.vo_drift_per_m * travel
                + 2.0 * cfg.vo_position_sigma**2 + (cfg.vo_position_relative * travel) ** 2
                + (old.attitude_sigma * travel) ** 2 + 0.5 * fused_var * (now.t - old.t) ** 2)
@@ -234,7 +234,7 @@ class VoCoupling:
             np.asarray(out.camera_position_world, float), ekf.ins.C_gyro.copy(),
             ekf.camera_attitude(), ekf.camera_position(),
             math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0)),
-            np.zeros((3, 3)) if carrier_fresh else ekf.P[ekf.ix.V, ekf.ix.V].copy()))
+            None if carrier_fresh else ekf.P[ekf.ix.V, ekf.ix.V].copy()))
         if bad is not None:
             off = f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}° off over {bad.window_s:.0f} s"
             if not self.excluded:

@@ -24,7 +24,8 @@ export class Targets {
       const row = this.rows.get(t.id) || this._row(t.id);
       row.name.textContent = t.label || t.id;
       // ±1σ of the distance (from the 3-D point's covariance): how far to trust it
-      const sigma = t.distance_sigma_m == null ? "" : `${fmtSigma(t.distance_sigma_m)} m · `;
+      const pm = fmtSigma(t.distance_sigma_m);
+      const sigma = pm && `${pm} m · `;
       row.dist.textContent = `${fmtDistance(t.distance_m)} m`;
       // lost: why (the tracker's reason: out of the image, look-alikes, too uncertain a point)
       const state = t.status === "lost" ? ` · lost: ${t.reason || "not found"}`
