@@ -694,8 +694,13 @@ class GnssCompass:
         dd = double_differences(epochs, geo, tracked, self.phase_sigma)
         if dd is None or dd.n_satellites < 4:
             n = 0 if dd is None else dd.n_satellites
+            silent = [str(i + 1) for i, e in enumerate(epochs) if e is None]
+            why = f"{n} common satellites < 4"
+            if silent:  # the integers are resolved on the three baselines from receiver 1
+                why += (f": receiver {', '.join(silent)} without an epoch (a fix needs all "
+                        "four receivers)")
             return CompassSolution(time=time, fixed=False, method="none", n_satellites=n,
-                                   message=f"{n} common satellites < 4")
+                                   message=why)
         if self.method == "fast":
             res = resolve_fast(dd, self.antennas, imu_tilt, heading_step_deg=self.heading_step,
                                chi2_quantile=self.chi2_quantile,

@@ -271,6 +271,22 @@ def test_compass_holds_attitude_on_two_satellites_and_a_dropout(nav):
             assert abs(heading_error_deg(sol.C_body_to_level, float(k))) < 2.0
 
 
+def test_a_silent_receiver_is_named_when_the_compass_cannot_fix(nav):
+    """Without one receiver the compass has no common satellites (its integers are resolved
+    on the three baselines from receiver 1): the message says which receiver, not only the
+    count, so that a slow ship that cannot start from its course says why."""
+    obs, _ = simulate_gnss(SMALL_BOAT, turning, nav, START, 3.0, seed=4, errors=NO_SLIPS)
+    comp = cm.GnssCompass(nav, ANTENNAS)
+    for k in range(len(obs[0])):
+        sol = comp.update([obs[0][k], obs[1][k], obs[2][k], None])
+    assert not sol.fixed
+    assert sol.message == "0 common satellites < 4: receiver 4 without an epoch (a fix needs " \
+        "all four receivers)", sol.message
+    comp = cm.GnssCompass(nav, ANTENNAS)  # all four: fixed, nothing to name
+    sol = comp.update([o[0] for o in obs])
+    assert sol.fixed and "receiver" not in sol.message
+
+
 # --------------------------------------------------------- real static pair (DD KF)
 
 
