@@ -401,6 +401,12 @@ def troposphere_delay(elevation: float, height_m: float) -> float:
     return (zhd + zwd) * tropo_mapping(elevation)
 
 
+def pierce_angle(elevation: float) -> float:
+    """Earth-centred angle (semicircles) from the receiver to the ionospheric pierce point
+    of a satellite at ``elevation`` (rad): the Klobuchar model's approximation."""
+    return 0.0137 / (max(elevation, 0.0) / math.pi + 0.11) - 0.022
+
+
 def klobuchar_delay(
     nav_alpha: Sequence[float],
     nav_beta: Sequence[float],
@@ -416,7 +422,7 @@ def klobuchar_delay(
     Scale by (f_L1 / f)^2 for other frequencies.
     """
     el_sc = max(elevation, 0.0) / math.pi
-    psi = 0.0137 / (el_sc + 0.11) - 0.022  # Earth-centred angle to the pierce point
+    psi = pierce_angle(elevation)
     phi_i = lat / math.pi + psi * math.cos(azimuth)
     phi_i = min(max(phi_i, -0.416), 0.416)
     lam_i = lon / math.pi + psi * math.sin(azimuth) / math.cos(phi_i * math.pi)

@@ -24,6 +24,7 @@ from .ephemeris import (
     carrier_frequency,
     is_beidou_geo,
     klobuchar_delay,
+    pierce_angle,
     rotate_earth,
     satellite_state,
     select_ephemeris,
@@ -46,8 +47,15 @@ _SIS_SIGMA = {"G": 1.0, "J": 1.0, "E": 0.8, "C": 1.5, "R": 2.0}
 _SIS_SIGMA_BEIDOU_GEO = 2.5
 _CODE_SIGMA = 0.3  # m, zenith code noise + multipath; grows as 1/sin(elevation)
 # Klobuchar leaves ~50 % of the delay, but that error is mostly common to all satellites
-# (absorbed by clock and height); 20 % is the part that shows in the residuals.
+# (absorbed by clock and height); 20 % is the part that shows in the residuals ...
 _IONO_MODEL_FRACTION = 0.2
+# ... and the common part is what moves the position: a scale of every satellite's delay
+# (mostly the height) and the residual's horizontal gradient (a north-south gradient of the
+# day's TEC moves the position north). Both are carried in the position's covariance: the
+# level off by half, the gradient by half the delay per 1000 km of pierce-point offset.
+_IONO_COMMON_FRACTION = 0.5
+_IONO_GRADIENT_PER_M = 0.5 / 1e6
+_SEMICIRCLE_M = math.pi * 6.371e6  # half a great circle of the Earth's surface
 _IONO_SIGMA_NO_MODEL = 5.0  # m at zenith when no Klobuchar coefficients are broadcast
 _TROPO_SIGMA = 0.1  # m at zenith for the standard-atmosphere model
 
@@ -70,6 +78,9 @@ class StandalonePosition:
     satellites: list[str]  # observation keys used
     residuals_m: dict[str, float]  # post-fit residuals of the used observations
     pdop: float
+    # ECEF covariance of the position (m²): the weighted solution's plus the common
+    # ionosphere residual (the Klobuchar model's level off by ``_IONO_COMMON_FRACTION``).
+    covariance: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
     rejected: list[str] = field(default_factory=list)  # keys removed by the outlier test
     reference_system: str = "G"
     iterations: int = 0
@@ -126,6 +137,9 @@ class _Linearised:
     H: np.ndarray
     prefit: np.ndarray  # measured - modelled (m), receiver clocks not yet removed
     sigma: np.ndarray
+    # Each row's share (m) of the three common ionosphere errors of σ 1: level, north and
+    # east gradient (n x 3).
+    iono_common: np.ndarray
 
 
 def _linearise(
@@ -159,9 +173,13 @@ def _linearise(
                 iono = ob.iono_scale * klobuchar_delay(
                     nav.iono_alpha, nav.iono_beta, t_tag, llh[0], llh[1], el, az)
                 iono_sigma = _IONO_MODEL_FRACTION * iono
+                delay = iono
             else:
                 iono = 0.0
-                iono_sigma = ob.iono_scale * _IONO_SIGMA_NO_MODEL / sin_el
+                iono_sigma = delay = ob.iono_scale * _IONO_SIGMA_NO_MODEL / sin_el
+            offset = pierce_angle(el) * _SEMICIRCLE_M * _IONO_GRADIENT_PER_M
+            common = delay * np.array([_IONO_COMMON_FRACTION, offset * math.cos(az),
+                                       offset * math.sin(az)])
             model += tropo + iono
             var = (
                 _CODE_SIGMA**2 * (1.0 + 1.0 / sin_el**2) + ob.sis_sigma**2 + iono_sigma**2
@@ -170,8 +188,8 @@ def _linearise(
         else:
             # Far from the surface (first iterations from the Earth centre): no atmosphere,
             # no mask, equal weights.
-            var = 1.0
-        rows.append((ob, los, model, var))
+            var, common = 1.0, np.zeros(3)
+        rows.append((ob, los, model, var, common))
         used.append(ob)
     systems = [s for s in SYSTEM_ORDER if any(o.system == s for o in used)]
     # A system seen by a single satellite only determines its own clock: leave it out.
@@ -182,12 +200,14 @@ def _linearise(
     H = np.zeros((n, m))
     prefit = np.zeros(n)
     sigma = np.zeros(n)
-    for i, (ob, los, model, var) in enumerate(rows):
+    common = np.zeros((n, 3))
+    for i, (ob, los, model, var, c) in enumerate(rows):
         H[i, :3] = -los
         H[i, 3 + systems.index(ob.system)] = 1.0
         prefit[i] = ob.pseudorange - model
         sigma[i] = math.sqrt(var)
-    return _Linearised([r[0] for r in rows], systems, H, prefit, sigma)
+        common[i] = c
+    return _Linearised([r[0] for r in rows], systems, H, prefit, sigma, common)
 
 
 def _solve(lin: _Linearised, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -279,6 +299,8 @@ def standalone_position(
 
     ref = lin.systems[0]
     pdop = float(math.sqrt(np.trace(np.linalg.inv(lin.H.T @ lin.H)[:3, :3])))
+    # The positions the common ionosphere errors move (what the clocks do not absorb).
+    shift = (Q @ (lin.H.T @ (lin.iono_common / lin.sigma[:, None] ** 2)))[:3]
     llh = ecef_to_geodetic(pos)
     if not plausible(llh[2], pdop, v):
         return None
@@ -291,6 +313,7 @@ def standalone_position(
         satellites=[o.key for o in lin.obs],
         residuals_m={o.key: float(r) for o, r in zip(lin.obs, v, strict=True)},
         pdop=pdop,
+        covariance=Q[:3, :3] + shift @ shift.T,
         rejected=rejected,
         reference_system=ref,
         iterations=iterations,
