@@ -40,6 +40,7 @@ class InsStart:
     velocity_centre_ned: np.ndarray  # antenna-array centre, TDCP over the interval
     clock_drift_mps: float
     spp_ecef: np.ndarray  # the antenna-array centre at ``time``
+    spp_covariance: np.ndarray  # ... its error covariance (ECEF, m²)
     attitude_sigma: float | None  # None: a compass fix; else tilt + course, this σ (rad)
 
 
@@ -55,7 +56,7 @@ class Alignment:
         self.common_clock = common_clock
         self.imu: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
         self._prev_fix: np.ndarray | None = None  # compass attitude at the last epoch
-        self._prev_spp: np.ndarray | None = None
+        self._prev_spp: tuple[np.ndarray, np.ndarray] | None = None  # position, covariance
         self.message = "waiting for GNSS"
 
     def buffer_imu(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> None:
@@ -104,7 +105,8 @@ class Alignment:
             self._prev_fix = None
             if start is None:
                 self.message = f"compass: {sol.message or 'not fixed'}"
-        self._prev_spp = front.spp_ecef
+        self._prev_spp = None if front.spp_ecef is None or front.spp_covariance is None \
+            else (front.spp_ecef, front.spp_covariance)
         if start is None:
             front.advance(epochs, geo)
         return start
@@ -121,12 +123,13 @@ class Alignment:
         if fixed and self._prev_fix is not None:
             self.message = "INS started from the GNSS compass fix"
             return InsStart(t_prev, self._prev_fix, v_interval[0], v_interval[1],
-                            self._prev_spp, attitude_sigma=None)
+                            *self._prev_spp, attitude_sigma=None)
         if t - (front.t_first or t) > ALIGN_TIMEOUT_S \
                 and np.hypot(*v_interval[0][:2]) > COURSE_MIN_SPEED:
             tilt = self.tilt() or (0.0, 0.0)
             yaw = math.atan2(v_interval[0][1], v_interval[0][0])
             self.message = "no compass fix: INS started from tilt and course over ground"
             return InsStart(t_prev, euler_to_dcm(tilt[0], tilt[1], yaw), v_interval[0],
-                            v_interval[1], self._prev_spp, attitude_sigma=COURSE_ATTITUDE_SIGMA)
+                            v_interval[1], *self._prev_spp,
+                            attitude_sigma=COURSE_ATTITUDE_SIGMA)
         return None

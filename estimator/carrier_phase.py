@@ -29,6 +29,7 @@ from .cpp import (
     elevation_sigma,
     eta_observations,
     loose_velocity,
+    origin_sensitivity,
     robust_lsq,
     tdcp_fit,
 )
@@ -174,6 +175,10 @@ class CarrierPhaseCoupling:
             rows = atmosphere_corrected(rows, front.prev_geo, geo, self.nav, origin.llh)
             if rows and self.monitor.clock_jump(t, self._common_range_change(rows, ekf)):
                 rows = []
+            if rows:
+                self.monitor.origin_interval(
+                    origin_sensitivity(rows, front.prev_geo, geo, origin.C_ecef_to_level,
+                                       cfg.tdcp_rate_sigma), rows[0].interval)
         # Single differences: integers re-resolved after slips, rows for the attitude.
         self.integers.drop([key for key in slips if key in self.integers.A])
         sd_rows: list[SdRow] = []

@@ -344,6 +344,34 @@ def eta_observations(
     return EtaSet(time=time, rows=rows, rejected=rejected)
 
 
+def origin_sensitivity(rows: Sequence[EtaRow], prev: EpochGeometry, curr: EpochGeometry,
+                       C_ecef_to_level: np.ndarray, rate_sigma: float) -> np.ndarray:
+    """The velocity (NED, m/s) the rows' least-squares solution takes per metre (NED) of error
+    of the point both geometries were computed at (3 x 3; zero without enough satellites).
+
+    The satellite term of a row is the range change seen from that point: an error δ of it
+    adds ``(e₂ − e₁)·δ / Δt`` to the row, e the unit vector towards the satellite at each end
+    (its line of sight turns ~1.5·10⁻⁴ rad/s). A standalone fix metres off therefore drifts
+    the carrier-phase trajectory by ~0.1 mm/s per metre — for as long as it is used."""
+    by_sat: dict[str, list[EtaRow]] = {}
+    for r in rows:
+        by_sat.setdefault(r.sat, []).append(r)
+    H, D, w = [], [], []
+    for sat, rs in by_sat.items():
+        if sat not in prev.satellites or sat not in curr.satellites:
+            continue
+        turn = curr.satellites[sat].line_of_sight - prev.satellites[sat].line_of_sight
+        H.append(np.append(C_ecef_to_level @ rs[0].los_ecef, 1.0))
+        D.append(C_ecef_to_level @ turn / rs[0].interval)
+        # The satellite's antennas share its rate error: one row per satellite.
+        w.append(1.0 / (np.mean([r.sigma**2 for r in rs]) / len(rs) + rate_sigma**2))
+    if len(H) < 5:
+        return np.zeros((3, 3))
+    Hw = np.asarray(H) * np.sqrt(w)[:, None]
+    sol = np.linalg.lstsq(Hw, np.asarray(D) * np.sqrt(w)[:, None], rcond=None)[0]
+    return sol[:3]
+
+
 def atmosphere_corrected(rows: Sequence[EtaRow], prev: EpochGeometry, curr: EpochGeometry,
                          nav: NavigationData, receiver_llh: np.ndarray) -> list[EtaRow]:
     """``rows`` with the modelled change of the tropospheric and ionospheric delays over the

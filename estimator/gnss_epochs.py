@@ -31,6 +31,7 @@ class GnssFront:
         self.prev: list[GnssEpoch | None] = [None] * N_RECEIVERS
         self.prev_geo: EpochGeometry | None = None
         self.spp_ecef: np.ndarray | None = None
+        self.spp_covariance: np.ndarray | None = None  # ECEF m² (``StandalonePosition``)
         self.clock_bias_s = 0.0
 
     def select(self, t: float, epochs: Sequence[GnssEpoch | None], carrier_off: bool
@@ -71,7 +72,7 @@ class GnssFront:
         receiver is enough: it only anchors llh and gives the receiver clock bias)."""
         present = [e for e in epochs if e is not None and e.satellites]
         if not present:
-            self.spp_ecef = None
+            self.spp_ecef = self.spp_covariance = None
             return
         if not joint:
             present = present[:1]
@@ -80,10 +81,10 @@ class GnssFront:
                                   initial_ecef=self.spp_ecef)
         t = present[0].time
         if spp is not None and (self.monitor is None or self.monitor.spp(t, spp.position)):
-            self.spp_ecef = spp.position
+            self.spp_ecef, self.spp_covariance = spp.position, spp.covariance
             self.clock_bias_s = spp.clock_bias_m / SPEED_OF_LIGHT
             return
-        self.spp_ecef = None
+        self.spp_ecef = self.spp_covariance = None
         tracked = len(present[0].satellites)
         if spp is None and self.monitor is not None and tracked >= SPP_EXPECTED_SATELLITES:
             self.monitor.raise_fault("spp-implausible", t, f"no plausible standalone position "

@@ -15,10 +15,13 @@ Three parts (the concepts of GNSS integrity, thesis-independent; ``docs/referenc
   course over ground only), ``no position`` (initialising, or no IMU: nothing to trust).
 - **Protection levels**: with every state, a horizontal protection level HPL (m) and a heading
   protection level (deg) that the true error exceeds with a probability below the integrity
-  risk: ``k`` times the filter's 1-σ (major axis of the horizontal covariance; the heading σ),
-  ``k`` from the χ² quantile of the integrity risk, plus the error a fault just below the
-  detection thresholds could leave (``IntegrityConfig.undetected_*``) and, for the HPL, an
-  overbound of the correlated carrier-phase drift the filter does not model. The state is
+  risk: ``k`` times the 1-σ (major axis of the horizontal covariance; the heading σ), ``k``
+  from the χ² quantile of the integrity risk, plus the error a fault just below the detection
+  thresholds could leave (``IntegrityConfig.undetected_*``) and, for the HPL, an overbound of
+  the correlated carrier-phase drift the filter does not model. The horizontal covariance is
+  the filter's plus what the world origin's error has driven: the carrier phase's satellite
+  geometry is computed at the standalone fix, metres off, and that drifts the trajectory
+  ~0.1 mm/s per metre for as long as it runs (``origin_drift_cov``). The state is
   **trusted** when the mode is usable, no critical fault is active and both levels are within
   their alert limits (default 0.5 m, 1°).
 
@@ -128,6 +131,11 @@ class IntegrityMonitor:
         self.alerts: list[Alert] = []  # history, raised and cleared
         self.last_input = -math.inf  # gpst of the newest input of any kind
         self.anchored_at: float | None = None  # gpst of the first filter state (world anchor)
+        # The standalone fix the carrier phase's geometry is computed at (the world origin):
+        # its error covariance (NED, m²) and the trajectory's accumulated sensitivity to it
+        # (m of position per m of origin error, ``cpp.origin_sensitivity`` times the interval).
+        self.origin_cov = np.zeros((3, 3))
+        self.origin_drift = np.zeros((3, 3))
         self.last_imu = -math.inf
         self.last_frame = -math.inf
         self.frames_seen = 0
@@ -303,6 +311,22 @@ class IntegrityMonitor:
 
     # -------------------------------------------------------------------------- state
 
+    def origin_fix(self, covariance_ned: np.ndarray) -> None:
+        """The world origin's standalone-fix covariance (NED, m²)."""
+        self.origin_cov = np.asarray(covariance_ned, float)
+        self.origin_drift = np.zeros((3, 3))
+
+    def origin_interval(self, sensitivity: np.ndarray, interval: float) -> None:
+        """One carrier-phase interval taken at the origin's geometry: velocity per metre of
+        origin error (``cpp.origin_sensitivity``) over ``interval`` seconds."""
+        self.origin_drift += np.asarray(sensitivity, float) * interval
+
+    def origin_drift_cov(self) -> np.ndarray:
+        """Horizontal covariance (m², 2 x 2) of the trajectory error the origin's error has
+        driven so far; independent of the filter's own (which takes the origin as exact)."""
+        A = self.origin_drift[:2]
+        return A @ self.origin_cov @ A.T
+
     def _stream_checks(self, t: float) -> None:
         """Streams that fell silent while others go on."""
         if math.isfinite(self.last_imu) and t - self.last_imu > self.cfg.imu_silent_s:
@@ -323,7 +347,8 @@ class IntegrityMonitor:
         if position_cov is not None and heading_var is not None and mode != "no position":
             if self.anchored_at is None:
                 self.anchored_at = t
-            major = float(np.linalg.eigvalsh(np.asarray(position_cov, float)[:2, :2])[-1])
+            horizontal = np.asarray(position_cov, float)[:2, :2] + self.origin_drift_cov()
+            major = float(np.linalg.eigvalsh(horizontal)[-1])
             drift = cfg.drift_m_per_sqrt_s * math.sqrt(max(t - self.anchored_at, 0.0))
             hpl = cfg.k(2) * math.sqrt(max(major, 0.0)) + cfg.undetected_horizontal_m + drift
             hdg = cfg.k(1) * math.degrees(math.sqrt(max(heading_var, 0.0))) \

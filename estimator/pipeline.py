@@ -402,6 +402,8 @@ class Fusion:
         origin_llh = ecef_to_geodetic(imu_ecef)
         self.origin = WorldOrigin(origin_llh, C_ecef_to_level(origin_llh[0], origin_llh[1]),
                                   start.time)
+        C_el0 = self.origin.C_ecef_to_level
+        self.monitor.origin_fix(C_el0 @ start.spp_covariance @ C_el0.T)
         samples = self.alignment.samples_from(start.time, _PAST)
         omega = self._G @ samples[0][1] if samples else np.zeros(3)
         v0 = start.velocity_centre_ned - C @ np.cross(omega, lever_centre)

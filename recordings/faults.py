@@ -23,6 +23,7 @@ what the estimator reads.
 | cycle-slips | every satellite of every receiver slips (1–30 cycles, unflagged) at once | at (40) |
 | clock-jump | the common receiver clock jumps | at, ms (40, 1) |
 | spp-outlier | every pseudorange off by 1–5 km (a broken code loop) | start, length (40, 10) |
+| iono-storm | an ionosphere stronger than broadcast: the fix metres off | extra × Klobuchar (1) |
 | half-sky | satellites of the quay-side half of the sky (north) lost from the start | – |
 | video-zeroed | bytes of the video file zeroed | offset MiB, length MiB (3, 1) |
 | video-end | the video ends early (``frames.csv`` keeps its rows) | at (45) |
@@ -43,9 +44,9 @@ import cv2
 import numpy as np
 
 from estimator.cpp import epoch_geometry
-from estimator.ephemeris import carrier_wavelength
-from estimator.frames import SPEED_OF_LIGHT, ned_to_ecef
-from estimator.records import GnssEpoch, SatObservation
+from estimator.ephemeris import carrier_wavelength, klobuchar_delay
+from estimator.frames import SPEED_OF_LIGHT, WAVELENGTH_L1, ned_to_ecef
+from estimator.records import GnssEpoch, NavigationData, SatObservation
 
 from .format import (
     IMU_COLUMNS,
@@ -74,7 +75,7 @@ DEFAULTS: dict[str, tuple[float, ...]] = {
     "imu-spikes": (40.0, 5.0), "imu-saturated": (40.0, 5.0), "imu-backwards": (40.0, 0.5),
     "imu-bias": (40.0, 0.3), "gyro-bias": (40.0, 1.0),
     "receiver-missing": (), "receiver-silent": (4.0, 40.0, 10.0), "cycle-slips": (40.0,),
-    "clock-jump": (40.0, 1.0), "spp-outlier": (40.0, 10.0), "half-sky": (),
+    "clock-jump": (40.0, 1.0), "spp-outlier": (40.0, 10.0), "iono-storm": (1.0,), "half-sky": (),
     "video-zeroed": (3.0, 1.0), "video-end": (45.0,), "video-frozen": (40.0, 5.0),
     "video-black": (40.0, 3.0), "video-blinded": (40.0, 3.0),
 }
@@ -305,6 +306,37 @@ def _spp_outlier(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
     _edit_epochs(rec, out, edit)
 
 
+def iono_storm(nav: NavigationData, llh: np.ndarray, extra: float
+               ) -> Callable[[int, GnssEpoch], GnssEpoch]:
+    """An epoch edit: the ionosphere stronger than the broadcast model by ``extra`` times its
+    delay (code delayed, carrier advanced alike), seen from ``llh`` (rad, rad, m)."""
+    if nav.iono_alpha is None or nav.iono_beta is None:
+        raise ValueError("iono-storm needs Klobuchar parameters in the navigation file")
+    alpha, beta = nav.iono_alpha, nav.iono_beta
+    site = ned_to_ecef(np.zeros(3), llh)
+
+    def edit(_i: int, ep: GnssEpoch) -> GnssEpoch:
+        geo = epoch_geometry(nav, sorted(ep.satellites), ep.time, site, 0.0, 0.0)
+        sats = {}
+        for s, o in ep.satellites.items():
+            g = geo.satellites.get(s)
+            if g is None:
+                sats[s] = o
+                continue
+            lam = carrier_wavelength(s, nav)
+            delay = extra * (lam / WAVELENGTH_L1) ** 2 * klobuchar_delay(
+                alpha, beta, ep.time, llh[0], llh[1], g.elevation, g.azimuth)
+            sats[s] = SatObservation(o.pseudorange + delay, o.carrier_phase - delay / lam,
+                                     o.doppler, o.snr, o.lli)
+        return GnssEpoch(ep.time, sats, ep.flag)
+
+    return edit
+
+
+def _iono_storm(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
+    _edit_epochs(rec, out, iono_storm(rec.nav, rec.manifest.origin_llh, p[0]))
+
+
 def _half_sky(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
     site = ned_to_ecef(np.zeros(3), rec.manifest.origin_llh)
 
@@ -384,7 +416,8 @@ _INJECT: dict[str, Callable[[Recording, Path, tuple[float, ...]], None]] = {
     "imu-bias": _imu_bias, "gyro-bias": _gyro_bias,
     "imu-backwards": _imu_backwards, "receiver-missing": _receiver_missing,
     "receiver-silent": _receiver_silent, "cycle-slips": _cycle_slips,
-    "clock-jump": _clock_jump, "spp-outlier": _spp_outlier, "half-sky": _half_sky,
+    "clock-jump": _clock_jump, "spp-outlier": _spp_outlier, "iono-storm": _iono_storm,
+    "half-sky": _half_sky,
     "video-zeroed": _video_zeroed, "video-end": _video_end, "video-frozen": _video_frozen,
     "video-black": _video_black, "video-blinded": _video_blinded,
 }

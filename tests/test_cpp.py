@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from estimator import cpp
-from estimator.frames import SPEED_OF_LIGHT, euler_to_dcm
+from estimator.frames import SPEED_OF_LIGHT, C_ecef_to_level, euler_to_dcm, geodetic_to_ecef
 from estimator.records import GnssEpoch, NavigationData
 from estimator.spp import standalone_position
 from recordings.rinex import l1_epochs, read_nav, read_obs
@@ -127,6 +127,50 @@ def test_an_epochs_own_tdcp_fit_on_real_receivers(real):
         np.testing.assert_allclose(m.correction[:3] - q.correction[:3], wrong, atol=1e-9)
         assert np.all(np.sqrt(np.diag(q.covariance)[:3]) < 0.01)  # mm/s-level agreement
     assert cpp.tdcp_fit(sats[:5], y[:5], u[:5], sigma[:5]) is None  # too few satellites
+
+
+def _per_satellite_velocity(rows, C_el: np.ndarray, rate_sigma: float) -> np.ndarray:
+    """The η rows' velocity (NED) as ``cpp.origin_sensitivity`` weighs them."""
+    sats = sorted({r.sat for r in rows})
+    H, y, w = [], [], []
+    for s in sats:
+        rs = [r for r in rows if r.sat == s]
+        H.append([*(C_el @ rs[0].los_ecef), 1.0])
+        y.append(np.mean([r.measured for r in rs]))
+        w.append(1.0 / (np.mean([r.sigma**2 for r in rs]) / len(rs) + rate_sigma**2))
+    sw = np.sqrt(w)
+    return np.linalg.lstsq(np.array(H) * sw[:, None], np.array(y) * sw, rcond=None)[0][:3]
+
+
+def test_origin_sensitivity_is_what_a_wrong_geometry_point_does(real):
+    """The rows computed at a point 10 m off (up, north, east) of the surveyed one move the
+    velocity by ``origin_sensitivity`` times the offset — checked against the real rows
+    recomputed at the moved point — and by the size measured over this file's 300 s (a point
+    10 m up: ~1 mm/s horizontally, a trajectory 28 cm off in five minutes)."""
+    nav, base, _ = real
+    lat, lon, h = np.loadtxt(DATA / "static_base_position.txt")
+    site = geodetic_to_ecef(np.radians(lat), np.radians(lon), h)
+    C_el = C_ecef_to_level(np.radians(lat), np.radians(lon))
+    up_drift = []
+    for k in range(1, 30, 3):
+        prev, curr = base[k - 1], base[k]
+        clock = standalone_position([curr], nav).clock_bias_m / SPEED_OF_LIGHT
+
+        def rows_at(point, prev=prev, curr=curr, clock=clock):
+            g1 = cpp.epoch_geometry(nav, sorted(prev.satellites), prev.time, point, clock)
+            g2 = cpp.epoch_geometry(nav, sorted(curr.satellites), curr.time, point, clock)
+            return cpp.eta_observations([prev], [curr], g1, g2).rows, g1, g2
+
+        rows, g1, g2 = rows_at(site)
+        K = cpp.origin_sensitivity(rows, g1, g2, C_el, 0.0005)
+        v0 = _per_satellite_velocity(rows, C_el, 0.0005)
+        for delta_ned in ([0.0, 0.0, -10.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0]):
+            moved, _, _ = rows_at(site + C_el.T @ np.array(delta_ned))
+            dv = _per_satellite_velocity(moved, C_el, 0.0005) - v0
+            np.testing.assert_allclose(K @ delta_ned, dv, atol=1e-7)  # m/s (dv ~1 mm/s)
+        up_drift.append(np.hypot(*(K @ [0.0, 0.0, -10.0])[:2]))
+    assert 0.0005 < np.median(up_drift) < 0.0015, up_drift
+    assert not cpp.origin_sensitivity(rows[:4], g1, g2, C_el, 0.0005).any()  # too few
 
 
 def test_injected_slip_is_detected_and_does_not_spike_velocity(real):

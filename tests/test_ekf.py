@@ -17,11 +17,18 @@ import numpy as np
 import pytest
 
 from estimator.ekf import ErrorStateEkf
-from estimator.frames import dcm_to_rotvec, euler_to_dcm, rotvec_to_dcm
+from estimator.frames import (
+    dcm_to_rotvec,
+    ecef_to_ned,
+    euler_to_dcm,
+    ned_to_ecef,
+    rotvec_to_dcm,
+)
 from estimator.ins import Ins, InsState
 from estimator.pipeline import Fusion, FusionOptions
 from estimator.records import ImuCalibration
 from estimator.vo import VoOutput, umeyama_alignment
+from recordings.faults import iono_storm
 from recordings.sim.scenarios import SMALL_BOAT
 from recordings.sim.scene import camera_calibration
 from recordings.sim.simulate import SensorRun, simulate_sensors
@@ -193,6 +200,43 @@ def test_position_covariance_is_consistent(sim):
     f, samples = run(sim, FusionOptions(use_vo=False))
     value = nees(samples, "dp", "P_r", 20.0) / 3.0
     assert 0.3 < value < 3.0, ("dp", value)
+
+
+def test_a_standalone_fix_metres_off_stays_inside_the_protection_level(sim):
+    """An ionosphere twice the broadcast model's (the ``iono-storm`` fault) puts the standalone
+    fix — the world origin, where the carrier phase's satellite geometry is computed — metres
+    off, and the trajectory drifts ~0.1 mm/s per metre of it for as long as it runs
+    (``cpp.origin_sensitivity``). Every trusted state's horizontal error must stay inside its
+    protection level, and it is the origin's term that keeps it there: without it the error
+    ends beyond the level."""
+    storm = iono_storm(sim.nav, np.radians(SCENARIO.origin_llh_deg[:2]).tolist()
+                       + [SCENARIO.origin_llh_deg[2]], 1.0)
+    stormy = Sim(**{**vars(sim), "epochs": [[storm(i, ep) for ep in eps]
+                                            for i, eps in enumerate(sim.epochs)]})
+    f = Fusion(stormy.calibration, stormy.nav, FusionOptions(use_vo=False))
+    cfg, p0, rows = f.monitor.cfg, None, []
+    for k, t in stormy.feed(f):
+        if f.ekf is None or k % 50:
+            continue
+        if p0 is None:
+            p0 = stormy.truth(f.origin_time).position_ned[0]
+        s = f.state()
+        ig = s.status.integrity
+        h = float(np.hypot(*(s.position_ned - (stormy.truth(s.time).position_ned[0] - p0))[:2]))
+        without = ig.hpl_m - cfg.k(2) * (np.sqrt(np.linalg.eigvalsh(
+            s.position_cov[:2, :2] + f.monitor.origin_drift_cov())[-1]) - np.sqrt(
+            np.linalg.eigvalsh(s.position_cov[:2, :2])[-1]))
+        rows.append((t - SCENARIO.start_gpst, h, ig.hpl_m, without, ig.trusted))
+    origin_error = ecef_to_ned(ned_to_ecef(np.zeros(3), f.origin.llh),
+                               np.array([*np.radians(SCENARIO.origin_llh_deg[:2]),
+                                         SCENARIO.origin_llh_deg[2]])) - p0
+    assert np.linalg.norm(origin_error) > 5.0, origin_error  # the storm did its damage
+    t, h, hpl, without, trusted = (np.array(c) for c in zip(*rows, strict=True))
+    trusted = trusted.astype(bool)
+    assert trusted[t >= BLOCK_AFTER_S].all()  # honest, and still available (the heading's
+    # protection level is within its alert limit from ~20 s)
+    assert np.all(h[trusted] <= hpl[trusted])
+    assert h[-1] > 1.2 * without[-1], (h[-1], without[-1], hpl[-1])
 
 
 def test_common_clock_beats_separate_clocks(sim):
