@@ -521,6 +521,9 @@ def engine_setup(rec: Recording, engine_factory: EngineFactory, options: dict[st
     if water.known:
         # The landmark refinement drops points on or below the water (reflections).
         engine_options.setdefault("body_origin_height_m", water.down_m)
+        if rec.hull.sea_surface is not None:
+            # ... and the sea surface's height pins the height of the world origin.
+            engine_options.setdefault("sea_surface", rec.hull.sea_surface)
     key = json.dumps([str(rec.path), id(engine_factory), engine_options],
                      sort_keys=True, default=repr)
     return water, lambda: engine_factory(rec.calibration, rec.nav, dict(engine_options)), key

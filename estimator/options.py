@@ -33,6 +33,10 @@ class FusionOptions:
     # installation constant): the water plane lies that far below the world origin, and
     # structure points on or below it (reflections, water patterns) are not reported.
     body_origin_height_m: float | None = None
+    # (ellipsoidal height, σ) of the sea surface, m (hull.json ``sea_surface_height_m``): with
+    # ``body_origin_height_m`` it gives the antennas' height, which the standalone fix that
+    # anchors the carrier phase's geometry is corrected with (``spp.height_aided``).
+    sea_surface: tuple[float, float] | None = None
     # Fault detection, protection levels and alert limits (``estimator.integrity``).
     integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
 

@@ -54,6 +54,7 @@ from .integrity import Alert, FrameCheck, IntegrityMonitor, checked_vo
 from .landmarks import LandmarkMap, SolvedViews
 from .options import FusedState, FusionOptions, FusionStatus, WorldOrigin
 from .records import Calibration, GnssEpoch, NavigationData
+from .spp import height_aided
 from .vo import VisualOdometry, VoOutput, WorkingImage
 from .vo_coupling import VoCoupling
 
@@ -390,11 +391,30 @@ class Fusion:
 
     # -------------------------------------------------------------------- INS start
 
+    def _sea_surface_aided(self, start: InsStart) -> tuple[np.ndarray, np.ndarray]:
+        """The start's standalone fix (antenna-array centre) and its covariance, corrected
+        with the antennas' height above the sea surface when it is known."""
+        opt = self.options
+        if opt.sea_surface is None or opt.body_origin_height_m is None:
+            return start.spp_ecef, start.spp_covariance
+        sea, sigma = opt.sea_surface
+        centre_down = float((start.C_body_to_level @ self.antennas.mean(axis=0))[2])
+        aided = height_aided(start.spp_ecef, start.spp_covariance,
+                             sea + opt.body_origin_height_m - centre_down, sigma)
+        if not aided.used:
+            self.monitor.raise_fault(
+                "sea-surface", start.time,
+                f"sea-surface height {sea:g} m puts the antennas {aided.innovation_m:+.1f} m "
+                f"from the standalone fix (σ {aided.innovation_sigma_m:.1f} m): not used — "
+                "is it the height above the ellipsoid?")
+        return aided.position, aided.covariance
+
     def _start_ins(self, start: InsStart) -> None:
         """INS at the previous epoch (the world origin): compass attitude (or tilt + course),
         SPP position, TDCP velocity and clock drift of the interval; then the buffered IMU
         samples are replayed up to now."""
-        C, spp = start.C_body_to_level, start.spp_ecef
+        C = start.C_body_to_level
+        spp, spp_cov = self._sea_surface_aided(start)
         llh = ecef_to_geodetic(spp)
         C_el = C_ecef_to_level(llh[0], llh[1])
         lever_centre = self.antennas.mean(axis=0) - self.calibration.imu.lever_arm_body
@@ -403,7 +423,7 @@ class Fusion:
         self.origin = WorldOrigin(origin_llh, C_ecef_to_level(origin_llh[0], origin_llh[1]),
                                   start.time)
         C_el0 = self.origin.C_ecef_to_level
-        self.monitor.origin_fix(C_el0 @ start.spp_covariance @ C_el0.T)
+        self.monitor.origin_fix(C_el0 @ spp_cov @ C_el0.T)
         samples = self.alignment.samples_from(start.time, _PAST)
         omega = self._G @ samples[0][1] if samples else np.zeros(3)
         v0 = start.velocity_centre_ned - C @ np.cross(omega, lever_centre)

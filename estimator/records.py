@@ -171,3 +171,15 @@ class Hull:
     # Height of the body origin (IMU) above the waterline, an installation constant: it puts
     # the water plane of the overlay under the ship.
     body_origin_height_m: float | None = None
+    # Ellipsoidal height of the sea surface at the berth (geoid height plus the tide), when
+    # known, and its σ: the antennas stand a known height above it, which pins the height of
+    # the standalone fix the carrier phase's geometry is computed at.
+    sea_surface_height_m: float | None = None
+    sea_surface_sigma_m: float = 1.0
+
+    @property
+    def sea_surface(self) -> tuple[float, float] | None:
+        """(height, σ) of the sea surface for ``FusionOptions.sea_surface``; None unknown."""
+        if self.sea_surface_height_m is None:
+            return None
+        return float(self.sea_surface_height_m), float(self.sea_surface_sigma_m)

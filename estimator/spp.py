@@ -318,3 +318,35 @@ def standalone_position(
         reference_system=ref,
         iterations=iterations,
     )
+
+
+HEIGHT_GATE_SIGMA = 4.0  # a height further than this many σ from the fix's is a blunder
+
+
+@dataclass(frozen=True)
+class HeightAided:
+    position: np.ndarray  # ECEF m
+    covariance: np.ndarray  # ECEF m²
+    innovation_m: float  # known height − the fix's
+    innovation_sigma_m: float
+    used: bool  # False: the height disagreed beyond ``HEIGHT_GATE_SIGMA`` (left unchanged)
+
+
+def height_aided(position_ecef: np.ndarray, covariance_ecef: np.ndarray, height_m: float,
+                 sigma_m: float) -> HeightAided:
+    """A fix and its covariance updated with a known ellipsoidal height (the antennas of a
+    ship stand a known height above the sea surface): one Kalman update along the vertical.
+    The ionosphere's level error moves the fix mostly up or down, correlated with its
+    horizontal error, so the height also takes some of that back."""
+    position = np.asarray(position_ecef, float)
+    P = np.asarray(covariance_ecef, float)
+    llh = ecef_to_geodetic(position)
+    up = -C_ecef_to_level(llh[0], llh[1])[2]
+    innovation = float(height_m - llh[2])
+    Pu = P @ up
+    s = float(math.sqrt(up @ Pu + sigma_m**2))
+    if abs(innovation) > HEIGHT_GATE_SIGMA * s:
+        return HeightAided(position, P, innovation, s, used=False)
+    gain = Pu / s**2
+    return HeightAided(position + gain * innovation, P - np.outer(gain, Pu), innovation, s,
+                       used=True)

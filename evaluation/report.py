@@ -123,7 +123,8 @@ def evaluate(rec: Recording, opt: ReportOptions, progress: Callable[[str], None]
         raise ValueError(f"{rec.manifest.name}: {rs.duration:g} s replayed leaves no window "
                          f"after the {opt.init_s:g} s initialisation")
     full = FusionOptions(keep_after_s=opt.init_s,
-                         body_origin_height_m=rec.hull.body_origin_height_m, **opt.fusion)
+                         body_origin_height_m=rec.hull.body_origin_height_m,
+                         sea_surface=rec.hull.sea_surface, **opt.fusion)
     main = rs.fuse(MAIN, full)
     if main.origin_time is None:
         raise ValueError(f"{rec.manifest.name}: the fusion never started (no GNSS compass fix "

@@ -578,8 +578,17 @@ def _parse_hull(path: Path) -> Hull:
     berth_line = None if berth is None else _array(path, berth, "berth_line_ned", (2, 2))
     height = data.get("body_origin_height_m")
     height = None if height is None else _number(path, height, "body_origin_height_m")
+    sea = data.get("sea_surface_height_m")
+    sea = None if sea is None else _number(path, sea, "sea_surface_height_m")
+    if sea is not None and not -200.0 <= sea <= 200.0:
+        raise RecordingError(f"{path}: sea_surface_height_m {sea} is not a height of the sea "
+                             "above the ellipsoid (geoid heights lie within ±110 m)")
+    sea_sigma = _number(path, data.get("sea_surface_sigma_m", 1.0), "sea_surface_sigma_m")
+    if sea_sigma <= 0:
+        raise RecordingError(f"{path}: sea_surface_sigma_m must be positive, got {sea_sigma}")
     return Hull(outline_body=outline, length=length, beam=beam, berth_line_ned=berth_line,
-                body_origin_height_m=height)
+                body_origin_height_m=height, sea_surface_height_m=sea,
+                sea_surface_sigma_m=sea_sigma)
 
 
 # -------------------------------------------------------------------------------- CSV
@@ -1175,6 +1184,8 @@ def write_hull(directory: str | Path, hull: Hull) -> Path:
         "beam": float(hull.beam),
         "berth_line_ned": None if hull.berth_line_ned is None else _list(hull.berth_line_ned),
         "body_origin_height_m": hull.body_origin_height_m,
+        "sea_surface_height_m": hull.sea_surface_height_m,
+        "sea_surface_sigma_m": float(hull.sea_surface_sigma_m),
     }
     return _write_json(Path(directory) / HULL_FILE, data)
 

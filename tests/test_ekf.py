@@ -202,19 +202,16 @@ def test_position_covariance_is_consistent(sim):
     assert 0.3 < value < 3.0, ("dp", value)
 
 
-def test_a_standalone_fix_metres_off_stays_inside_the_protection_level(sim):
-    """An ionosphere twice the broadcast model's (the ``iono-storm`` fault) puts the standalone
-    fix — the world origin, where the carrier phase's satellite geometry is computed — metres
-    off, and the trajectory drifts ~0.1 mm/s per metre of it for as long as it runs
-    (``cpp.origin_sensitivity``). Every trusted state's horizontal error must stay inside its
-    protection level, and it is the origin's term that keeps it there: without it the error
-    ends beyond the level."""
+def _storm_run(sim, options: FusionOptions):
+    """INS + carrier phase under an ionosphere twice the broadcast model's (``iono-storm``):
+    (the fusion, the world origin's error NED, [(t, horizontal error, HPL, the HPL without
+    the origin's term, trusted)] every half second)."""
     storm = iono_storm(sim.nav, np.radians(SCENARIO.origin_llh_deg[:2]).tolist()
                        + [SCENARIO.origin_llh_deg[2]], 1.0)
     stormy = Sim(**{**vars(sim), "epochs": [[storm(i, ep) for ep in eps]
                                             for i, eps in enumerate(sim.epochs)]})
-    f = Fusion(stormy.calibration, stormy.nav, FusionOptions(use_vo=False))
-    cfg, p0, rows = f.monitor.cfg, None, []
+    f = Fusion(stormy.calibration, stormy.nav, options)
+    k2, p0, rows = f.monitor.cfg.k(2), None, []
     for k, t in stormy.feed(f):
         if f.ekf is None or k % 50:
             continue
@@ -223,20 +220,48 @@ def test_a_standalone_fix_metres_off_stays_inside_the_protection_level(sim):
         s = f.state()
         ig = s.status.integrity
         h = float(np.hypot(*(s.position_ned - (stormy.truth(s.time).position_ned[0] - p0))[:2]))
-        without = ig.hpl_m - cfg.k(2) * (np.sqrt(np.linalg.eigvalsh(
-            s.position_cov[:2, :2] + f.monitor.origin_drift_cov())[-1]) - np.sqrt(
-            np.linalg.eigvalsh(s.position_cov[:2, :2])[-1]))
+        P = s.position_cov[:2, :2]
+        without = ig.hpl_m - k2 * (np.sqrt(np.linalg.eigvalsh(
+            P + f.monitor.origin_drift_cov())[-1]) - np.sqrt(np.linalg.eigvalsh(P)[-1]))
         rows.append((t - SCENARIO.start_gpst, h, ig.hpl_m, without, ig.trusted))
-    origin_error = ecef_to_ned(ned_to_ecef(np.zeros(3), f.origin.llh),
-                               np.array([*np.radians(SCENARIO.origin_llh_deg[:2]),
-                                         SCENARIO.origin_llh_deg[2]])) - p0
-    assert np.linalg.norm(origin_error) > 5.0, origin_error  # the storm did its damage
+    site = np.array([*np.radians(SCENARIO.origin_llh_deg[:2]), SCENARIO.origin_llh_deg[2]])
+    origin_error = ecef_to_ned(ned_to_ecef(np.zeros(3), f.origin.llh), site) - p0
     t, h, hpl, without, trusted = (np.array(c) for c in zip(*rows, strict=True))
-    trusted = trusted.astype(bool)
-    assert trusted[t >= BLOCK_AFTER_S].all()  # honest, and still available (the heading's
-    # protection level is within its alert limit from ~20 s)
+    return f, origin_error, t, h, hpl, without, trusted.astype(bool)
+
+
+def test_a_standalone_fix_metres_off_stays_inside_the_protection_level(sim):
+    """An ionosphere twice the broadcast model's puts the standalone fix — the world origin,
+    where the carrier phase's satellite geometry is computed — metres off, and the trajectory
+    drifts ~0.1 mm/s per metre of it for as long as it runs (``cpp.origin_sensitivity``).
+    Every trusted state's horizontal error must stay inside its protection level, and it is
+    the origin's term that keeps it there: without it the error ends beyond the level."""
+    _f, origin_error, t, h, hpl, without, trusted = _storm_run(sim, FusionOptions(use_vo=False))
+    assert np.linalg.norm(origin_error) > 5.0, origin_error  # the storm did its damage
+    # honest, and still available (the heading's level is within its limit from ~20 s)
+    assert trusted[t >= BLOCK_AFTER_S].all()
     assert np.all(h[trusted] <= hpl[trusted])
     assert h[-1] > 1.2 * without[-1], (h[-1], without[-1], hpl[-1])
+
+
+def test_the_sea_surface_pins_the_origin_height(sim):
+    """The same storm with the sea surface's height known to 1 m (0.7 m off here, as a tide
+    table not applied would leave it): the world origin's height is taken from it, the
+    drift it drove and the protection level both shrink. A height given above mean sea level
+    instead of the ellipsoid (37 m off) is refused, and said so."""
+    height = SCENARIO.origin_llh_deg[2] + 0.7
+    base = dict(use_vo=False, body_origin_height_m=-SCENARIO.reference_point_down_m)
+    f0, e0, _t, h0, hpl0, _w, _tr = _storm_run(sim, FusionOptions(**base))
+    f1, e1, _t, h1, hpl1, _w, trusted = _storm_run(
+        sim, FusionOptions(**base, sea_surface=(height, 1.0)))
+    assert abs(e0[2]) > 5.0 and abs(e1[2]) < 1.5, (e0, e1)
+    assert np.all(h1[trusted] <= hpl1[trusted])
+    assert hpl1[-1] < 0.6 * hpl0[-1] and h1[-1] < h0[-1], (hpl0[-1], hpl1[-1], h0[-1], h1[-1])
+    assert not [a for a in f1.alerts() if a.kind == "sea-surface"]
+    f2, e2, *_ = _storm_run(sim, FusionOptions(**base, sea_surface=(height - 37.0, 1.0)))
+    np.testing.assert_allclose(e2, e0)
+    refused = [a.message for a in f2.alerts() if a.kind == "sea-surface"]
+    assert refused and "above the ellipsoid" in refused[0], f2.alerts()
 
 
 def test_common_clock_beats_separate_clocks(sim):

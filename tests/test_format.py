@@ -98,7 +98,8 @@ def build_recording(root: Path) -> dict:
     cal = make_calibration()
     hull = Hull(outline_body=np.array([[3.5, 0], [1.75, 1.25], [-3.5, 1.25], [-3.5, -1.25],
                                        [1.75, -1.25]]),
-                length=7.0, beam=2.5, berth_line_ned=np.array([[0.0, -60.0], [0.0, 60.0]]))
+                length=7.0, beam=2.5, berth_line_ned=np.array([[0.0, -60.0], [0.0, 60.0]]),
+                sea_surface_height_m=37.4, sea_surface_sigma_m=0.8)
     t_imu = START + np.arange(201) * 0.01
     imu = ImuData(time=t_imu, gyro=rng.normal(0, 0.1, (201, 3)),
                   accel=rng.normal(0, 0.2, (201, 3)) + [0, 0, -9.8])
@@ -196,6 +197,28 @@ def test_round_trip_calibration_and_hull(loaded: fmt.Recording, pristine) -> Non
     np.testing.assert_array_equal(hull.outline_body, want_hull.outline_body)
     assert (hull.length, hull.beam) == (7.0, 2.5)
     np.testing.assert_array_equal(hull.berth_line_ned, want_hull.berth_line_ned)
+    assert hull.sea_surface == (37.4, 0.8)
+
+
+@pytest.mark.parametrize("field,value,expect", [
+    ("sea_surface_height_m", "37", "sea_surface_height_m must be a finite number"),
+    ("sea_surface_height_m", 6378137.0, "not a height of the sea above the ellipsoid"),
+    ("sea_surface_sigma_m", 0.0, "sea_surface_sigma_m must be positive"),
+    ("sea_surface_sigma_m", None, "sea_surface_sigma_m must be a finite number"),
+])
+def test_bad_sea_surface_is_named(rec_dir: Path, field: str, value, expect: str) -> None:
+    edit_json(rec_dir / "hull.json", lambda h: h.update({field: value}))
+    with pytest.raises(RecordingError, match=expect) as err:
+        fmt.load(rec_dir, load_gnss=False)
+    assert "hull.json" in str(err.value)
+
+
+def test_sea_surface_is_optional(rec_dir: Path) -> None:
+    def drop(h: dict) -> None:
+        h.pop("sea_surface_height_m")
+        h.pop("sea_surface_sigma_m")
+    edit_json(rec_dir / "hull.json", drop)
+    assert fmt.load(rec_dir, load_gnss=False).hull.sea_surface is None
 
 
 def test_round_trip_imu_frames_reference_scene(loaded: fmt.Recording, pristine) -> None:

@@ -39,6 +39,10 @@ def test_large_ship_recording_loads_and_is_consistent(large_ship: Path) -> None:
     assert -28.5 < cam[2] < -15.5
     frame = rec.read_frame(15)
     assert frame.shape == (600, 960, 3) and frame.std() > 20
+    # The sea surface's height as an installer knows it: off the world's 37 m by a geoid
+    # error and the tide, within what its σ states.
+    height, sigma = rec.hull.sea_surface
+    assert sigma == 1.0 and 0.0 < abs(height - rec.manifest.origin_llh_deg[2]) < 2.0
 
 
 def test_simulation_is_deterministic_for_a_seed(large_ship: Path, tmp_path: Path) -> None:

@@ -24,7 +24,7 @@ from estimator.frames import (
     geodetic_to_ecef,
 )
 from estimator.records import GnssEpoch, NavigationData, SatObservation
-from estimator.spp import standalone_position
+from estimator.spp import height_aided, standalone_position
 from recordings.rinex import l1_epochs, read_nav, read_obs
 
 DATA = Path(__file__).parent / "data"
@@ -91,6 +91,26 @@ def test_covariance_covers_the_real_error(nav, epochs, base_llh) -> None:
         north_sigma.append(math.sqrt(P[0, 0]))
     assert max(d) < 1.5, max(d)
     assert 2.0 < np.median(north_sigma) < 6.0  # the gradient's share, not the cofactor's
+
+
+def test_a_known_height_corrects_the_fix(nav, epochs, base_llh) -> None:
+    """The surveyed height given with 0.5 m: the fix moves to it (its vertical error 2.2 m →
+    within the 0.5 m), its covariance says so, and the correction stays inside what the
+    covariance allowed; a height 37 m off (above mean sea level instead of the ellipsoid)
+    is refused."""
+    sol = standalone_position(epochs[0], nav)
+    C = C_ecef_to_level(base_llh[0], base_llh[1])
+    aided = height_aided(sol.position, sol.covariance, float(base_llh[2]), 0.5)
+    assert aided.used
+    before, after = ecef_to_ned(sol.position, base_llh), ecef_to_ned(aided.position, base_llh)
+    assert abs(before[2]) > 1.5 and abs(after[2]) < 0.5
+    P = C @ aided.covariance @ C.T
+    assert 0.3 < math.sqrt(P[2, 2]) < 0.5
+    assert float(after @ np.linalg.solve(P, after)) < 3.0**2
+    np.testing.assert_allclose(aided.covariance, aided.covariance.T, atol=1e-9)
+    blunder = height_aided(sol.position, sol.covariance, float(base_llh[2]) - 37.0, 1.0)
+    assert not blunder.used and blunder.innovation_m < -30.0
+    np.testing.assert_array_equal(blunder.position, sol.position)
 
 
 def test_clock_and_residuals_are_consistent(nav, epochs, base_llh) -> None:

@@ -101,6 +101,18 @@ def simulate_sensors(
     return SensorRun(motion, calibration, nav, imu, epochs, imu_truth, gnss_truth)
 
 
+# The sea surface's ellipsoidal height an installer would enter: a geoid model's (~0.3 m off)
+# without the tide of the hour (Osaka Bay: ±0.9 m about mean sea level); stated as σ 1 m.
+SEA_SURFACE_SIGMA_M = 1.0
+
+
+def charted_sea_surface(true_height_m: float, seed: int) -> float:
+    """The simulated world's sea-surface height as it would be known, off by a geoid error and
+    the tide (its own random stream: the sensors' draws do not move)."""
+    rng = np.random.default_rng([seed, 0x5EA])
+    return round(float(true_height_m + rng.normal(0.0, 0.3) + rng.uniform(-0.9, 0.9)), 2)
+
+
 def simulate(
     scenario_name: str,
     seed: int,
@@ -168,7 +180,9 @@ def simulate(
     fmt.write_calibration(out, run.calibration)
     berth = np.array([[0.0, scenario.quay_east_range[0]], [0.0, scenario.quay_east_range[1]]])
     fmt.write_hull(out, Hull(scenario.hull_outline(), scenario.hull_length_m, scenario.hull_beam_m,
-                             berth, body_origin_height_m=-scenario.reference_point_down_m))
+                             berth, body_origin_height_m=-scenario.reference_point_down_m,
+                             sea_surface_height_m=charted_sea_surface(h, seed),
+                             sea_surface_sigma_m=SEA_SURFACE_SIGMA_M))
 
     ref_t = imu.time
     state = motion.state(ref_t - start)
