@@ -258,10 +258,13 @@ def test_the_sea_surface_pins_the_origin_height(sim):
     assert np.all(h1[trusted] <= hpl1[trusted])
     assert hpl1[-1] < 0.6 * hpl0[-1] and h1[-1] < h0[-1], (hpl0[-1], hpl1[-1], h0[-1], h1[-1])
     assert not [a for a in f1.alerts() if a.kind == "sea-surface"]
-    f2, e2, *_ = _storm_run(sim, FusionOptions(**base, sea_surface=(height - 37.0, 1.0)))
+    f2, e2, _t, h2, hpl2, _w, trusted2 = _storm_run(
+        sim, FusionOptions(**base, sea_surface=(height - 37.0, 1.0)))
     np.testing.assert_allclose(e2, e0)
     refused = [a.message for a in f2.alerts() if a.kind == "sea-surface"]
     assert refused and "above the ellipsoid" in refused[0], f2.alerts()
+    # ... and the disagreement (26 m: either could be wrong) widens the origin's height
+    assert hpl2[-1] > 2.0 * hpl0[-1] and np.all(h2[trusted2] <= hpl2[trusted2])
 
 
 def test_common_clock_beats_separate_clocks(sim):
