@@ -78,8 +78,9 @@ class StandalonePosition:
     satellites: list[str]  # observation keys used
     residuals_m: dict[str, float]  # post-fit residuals of the used observations
     pdop: float
-    # ECEF covariance of the position (m²): the weighted solution's plus the common
-    # ionosphere residual (the Klobuchar model's level off by ``_IONO_COMMON_FRACTION``).
+    # ECEF covariance of the position (m²): the weighted solution's plus the ionosphere's
+    # common modes (Klobuchar's level and a horizontal gradient, which the clocks and the
+    # residuals do not show).
     covariance: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
     rejected: list[str] = field(default_factory=list)  # keys removed by the outlier test
     reference_system: str = "G"
