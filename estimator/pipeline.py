@@ -401,22 +401,14 @@ class Fusion:
         centre_down = float((start.C_body_to_level @ self.antennas.mean(axis=0))[2])
         aided = height_aided(start.spp_ecef, start.spp_covariance,
                              sea + opt.body_origin_height_m - centre_down, sigma)
-        if aided.used:
-            return aided.position, aided.covariance
-        # One of the two is wrong: a height above mean sea level instead of the ellipsoid,
-        # or an ionosphere far from its model. Neither is used to correct the other, and the
-        # fix's height is taken as uncertain by the whole disagreement.
-        self.monitor.raise_fault(
-            "sea-surface", start.time,
-            f"sea-surface height {sea:g} m puts the antennas {aided.innovation_m:+.1f} m from "
-            f"the standalone fix (σ {aided.innovation_sigma_m:.1f} m): not used, the origin's "
-            "height taken as that uncertain — is the height above the ellipsoid, or the "
-            "ionosphere far from its model?")
-        llh = ecef_to_geodetic(start.spp_ecef)
-        up = -C_ecef_to_level(llh[0], llh[1])[2]
-        P = np.asarray(start.spp_covariance, float)
-        excess = max(aided.innovation_m**2 - float(up @ P @ up), 0.0)
-        return start.spp_ecef, P + excess * np.outer(up, up)
+        if not aided.used:
+            self.monitor.raise_fault(
+                "sea-surface", start.time,
+                f"sea-surface height {sea:g} m puts the antennas {aided.innovation_m:+.1f} m "
+                f"from the standalone fix (σ {aided.innovation_sigma_m:.1f} m): not used, the "
+                "origin's height taken as that uncertain — is the height above the "
+                "ellipsoid, or the ionosphere far from its model?")
+        return aided.position, aided.covariance
 
     def _start_ins(self, start: InsStart) -> None:
         """INS at the previous epoch (the world origin): compass attitude (or tilt + course),

@@ -330,7 +330,9 @@ class HeightAided:
     covariance: np.ndarray  # ECEF m²
     innovation_m: float  # known height − the fix's
     innovation_sigma_m: float
-    used: bool  # False: the height disagreed beyond ``HEIGHT_GATE_SIGMA`` (left unchanged)
+    # False: the height disagreed beyond ``HEIGHT_GATE_SIGMA``: the position is the fix's,
+    # its height uncertain by the whole disagreement
+    used: bool
 
 
 def height_aided(position_ecef: np.ndarray, covariance_ecef: np.ndarray, height_m: float,
@@ -338,7 +340,11 @@ def height_aided(position_ecef: np.ndarray, covariance_ecef: np.ndarray, height_
     """A fix and its covariance updated with a known ellipsoidal height (the antennas of a
     ship stand a known height above the sea surface): one Kalman update along the vertical.
     The ionosphere's level error moves the fix mostly up or down, correlated with its
-    horizontal error, so the height also takes some of that back."""
+    horizontal error, so the height also takes some of that back.
+
+    Beyond the gate one of the two is wrong (a height above mean sea level instead of the
+    ellipsoid, or an ionosphere far from its model): neither corrects the other, and the
+    fix's vertical variance is raised to the disagreement squared."""
     position = np.asarray(position_ecef, float)
     P = np.asarray(covariance_ecef, float)
     llh = ecef_to_geodetic(position)
@@ -347,7 +353,8 @@ def height_aided(position_ecef: np.ndarray, covariance_ecef: np.ndarray, height_
     Pu = P @ up
     s = float(math.sqrt(up @ Pu + sigma_m**2))
     if abs(innovation) > HEIGHT_GATE_SIGMA * s:
-        return HeightAided(position, P, innovation, s, used=False)
+        excess = max(innovation**2 - float(up @ Pu), 0.0)
+        return HeightAided(position, P + excess * np.outer(up, up), innovation, s, used=False)
     gain = Pu / s**2
     return HeightAided(position + gain * innovation, P - np.outer(gain, Pu), innovation, s,
                        used=True)
