@@ -32,6 +32,7 @@ IMU tilt (passed here as a prior) or, properly, the tight coupling with the gyro
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -41,7 +42,6 @@ from scipy.stats import chi2 as chi2_dist
 
 from .baseline import BaselineFix, DoubleDifferenceFilter, SdObservation
 from .cpp import (
-    BASELINE_PAIRS,
     DEFAULT_PHASE_SIGMA_M,
     SAME_CARRIER_SYSTEMS,
     EpochGeometry,
@@ -53,8 +53,13 @@ from .frames import SPEED_OF_LIGHT, dcm_to_euler, euler_to_dcm, rotvec_to_dcm, w
 from .records import GnssEpoch, NavigationData
 from .spp import standalone_position
 
-INDEPENDENT = (1, 2, 3)  # baselines (0, j): the other three are their differences
-ANGLE_PAIRS = tuple((p, q) for p in range(6) for q in range(p + 1, 6))  # 15 pairs of baselines
+MIN_RECEIVERS = 3  # two independent baselines still give the whole attitude
+
+
+def receiver_pairs(n: int) -> tuple[tuple[int, int], ...]:
+    """The baselines of ``n`` receivers, ``(0, j)`` first: the independent ones (the others
+    are their differences). Four receivers: ``cpp.BASELINE_PAIRS``."""
+    return tuple(itertools.combinations(range(n), 2))
 
 
 # --------------------------------------------------------------------------- results
@@ -67,7 +72,7 @@ class CompassSolution:
     method: str  # "fast" | "conventional" (resolved now), "hold-dd" | "hold-sd" (kept), "none"
     C_body_to_level: np.ndarray | None = None
     euler: np.ndarray | None = None  # roll, pitch, yaw (rad)
-    baselines_ned: np.ndarray | None = None  # (6,3) b_ij in BASELINE_PAIRS order
+    baselines_ned: np.ndarray | None = None  # (pairs, 3) b_ij of ``receivers``' pairs
     integers: dict[tuple[int, int], dict[str, int]] = field(default_factory=dict)
     n_satellites: int = 0
     residual_rms_m: float = math.nan
@@ -78,30 +83,34 @@ class CompassSolution:
     # the assumed phase noise: [2, 2] is the heading variance (for the EKF's R).
     attitude_covariance: np.ndarray | None = None
     message: str = ""
+    receivers: tuple[int, ...] = ()  # those resolved with (receiver 0 and two or three more)
 
 
 # ------------------------------------------------------------------------- geometry
 
 
 def layout_baselines(antennas_body: np.ndarray) -> np.ndarray:
-    """(6,3) body-frame baselines ``a_j − a_i`` for ``BASELINE_PAIRS``."""
+    """(pairs, 3) body-frame baselines ``a_j − a_i`` for ``receiver_pairs(len(antennas))``:
+    six for four antennas (``BASELINE_PAIRS``), three for three."""
     a = np.asarray(antennas_body, dtype=float)
-    return np.array([a[j] - a[i] for i, j in BASELINE_PAIRS])
+    return np.array([a[j] - a[i] for i, j in receiver_pairs(len(a))])
 
 
 def _all_baselines(b0: np.ndarray) -> np.ndarray:
-    """(..., 6, 3) baselines from the (..., 3, 3) independent ones b_01, b_02, b_03."""
-    b01, b02, b03 = b0[..., 0, :], b0[..., 1, :], b0[..., 2, :]
-    return np.stack([b01, b02, b03, b02 - b01, b03 - b01, b03 - b02], axis=-2)
+    """(..., pairs, 3) baselines from the (..., n − 1, 3) independent ones b_01 … b_0(n−1)."""
+    full = np.concatenate([np.zeros_like(b0[..., :1, :]), b0], axis=-2)
+    i, j = np.array(receiver_pairs(b0.shape[-2] + 1)).T
+    return full[..., j, :] - full[..., i, :]
 
 
 def baseline_angles(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Angles of the 15 baseline pairs from the dot product (acos) and the cross product (asin).
+    """Angles of every pair of baselines from the dot product (acos) and the cross product
+    (asin).
 
-    ``b``: (..., 6, 3). Returns two (..., 15) arrays in radians; the asin one lies in [0, π/2].
+    ``b``: (..., m, 3). Returns two (..., m(m−1)/2) arrays in radians (15 for the six
+    baselines of four antennas); the asin one lies in [0, π/2].
     """
-    p = np.array([pq[0] for pq in ANGLE_PAIRS])
-    q = np.array([pq[1] for pq in ANGLE_PAIRS])
+    p, q = np.array(receiver_pairs(b.shape[-2])).T
     b1, b2 = b[..., p, :], b[..., q, :]
     norms = np.linalg.norm(b1, axis=-1) * np.linalg.norm(b2, axis=-1)
     norms = np.maximum(norms, 1e-12)
@@ -192,7 +201,7 @@ def _whitener(cov: np.ndarray) -> np.ndarray:
 
 @dataclass
 class DoubleDifferences:
-    """Double differences of one epoch on the independent baselines (0,1), (0,2), (0,3).
+    """Double differences of one epoch on the independent baselines (0,1) … (0,n−1).
 
     ``dd[j-1, k] = Φ_0j^{s_k} − Φ_0j^{ref}`` (cycles) with ``λ·dd = H[k]·b_0j + λ·N``; ``H`` rows
     are ``(e^k − e^ref)`` in NED.
@@ -202,7 +211,7 @@ class DoubleDifferences:
     reference: str
     sats: list[str]  # the non-reference satellites, order of the columns
     H: np.ndarray  # (n, 3)
-    dd: np.ndarray  # (3, n) cycles
+    dd: np.ndarray  # (receivers − 1, n) cycles
     wavelength: float
     cov: np.ndarray  # (3n, 3n) m², baseline-major order
     sigma_u: dict[str, float]
@@ -219,6 +228,11 @@ class DoubleDifferences:
     def n_satellites(self) -> int:
         return len(self.sats) + 1
 
+    @property
+    def n_baselines(self) -> int:
+        """Independent baselines (0, j)."""
+        return len(self.dd)
+
 
 def double_differences(
     epochs: Sequence[GnssEpoch | None],
@@ -227,7 +241,7 @@ def double_differences(
     phase_sigma_m: float = DEFAULT_PHASE_SIGMA_M,
     reference: str | None = None,
 ) -> DoubleDifferences | None:
-    """Double differences of ``sats`` (tracked by all four receivers, same carrier).
+    """Double differences of ``sats`` (tracked by every receiver of ``epochs``, same carrier).
 
     The reference satellite is the highest one unless given. None with < 2 satellites.
     """
@@ -240,13 +254,14 @@ def double_differences(
     lam = geometry.wavelengths[ref]
     e_ref = geometry.los_ned(ref)
     H = np.array([geometry.los_ned(s) - e_ref for s in others])
-    dd = np.zeros((3, len(others)))
-    for j in INDEPENDENT:
+    independent = range(1, len(epochs))
+    dd = np.zeros((len(independent), len(others)))
+    for j in independent:
         for k, s in enumerate(others):
             dd[j - 1, k] = (_sd(epochs, 0, j, s) - _sd(epochs, 0, j, ref))
     sigma_u = {s: elevation_sigma(phase_sigma_m, geometry.satellites[s].elevation) for s in sats}
     rows = [[(0, s, 1.0), (j, s, -1.0), (0, ref, -1.0), (j, ref, 1.0)]
-            for j in INDEPENDENT for s in others]
+            for j in independent for s in others]
     return DoubleDifferences(time=geometry.time, reference=ref, sats=others, H=H, dd=dd,
                              wavelength=lam, cov=_difference_covariance(rows, sigma_u),
                              sigma_u=sigma_u)
@@ -261,7 +276,8 @@ def _sd(epochs: Sequence[GnssEpoch | None], i: int, j: int, sat: str) -> float:
 
 
 def _baseline_ls(dd: DoubleDifferences, integers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unconstrained baselines (…, 3, 3) and whitened residual χ² (…) for integer sets (…, 3, n).
+    """Unconstrained baselines (…, m, 3) and whitened residual χ² (…) for integer sets (…, m, n)
+    of the ``m`` independent baselines.
 
     Each baseline is solved with its own block of the DD covariance (the cross-baseline
     correlation only matters for the rigid fit).
@@ -328,10 +344,10 @@ class AttitudeFit:
 def rigid_fit(dd: DoubleDifferences, integers: np.ndarray, layout: np.ndarray,
               C0: np.ndarray | None = None, tilt: tuple[float, float] | None = None,
               tilt_sigma_rad: float = math.radians(2.0)) -> AttitudeFit:
-    """Attitude from fixed double differences (integers (3, n) for ``dd.sats``).
+    """Attitude from fixed double differences (integers (m, n) for ``dd.sats``).
 
     Start from Wahba's solution on the resolved baselines (or ``C0``), then Gauss–Newton on
-    the double differences of all three independent baselines with their full covariance.
+    the double differences of all the independent baselines with their full covariance.
     An IMU ``tilt`` (roll, pitch) enters as a prior: with few satellites on one side of the sky
     the heading is correlated with the poorly determined tilt, and the prior decorrelates it.
     χ² is that of the double differences alone.
@@ -341,7 +357,7 @@ def rigid_fit(dd: DoubleDifferences, integers: np.ndarray, layout: np.ndarray,
         C0 = wahba(_all_baselines(b0), layout)
     y = (dd.wavelength * (dd.dd - integers)).reshape(-1)
     Wt = dd.whitener
-    a0 = layout[:3]  # body a_01, a_02, a_03
+    a0 = layout[:dd.n_baselines]  # body a_01, a_02, …
 
     def residual(C: np.ndarray) -> np.ndarray:
         pred = ((C @ a0.T).T @ dd.H.T).reshape(-1)  # (3n,) H·C a_0j, baseline-major
@@ -415,9 +431,9 @@ class FastResolution:
     """Outcome of the thesis' fast integer resolution at one epoch."""
 
     fixed: bool
-    integers: np.ndarray | None  # (3, n) DD integers of baselines (0,j) for ``dd.sats``
+    integers: np.ndarray | None  # (m, n) DD integers of baselines (0,j) for ``dd.sats``
     C_body_to_level: np.ndarray | None
-    baselines_ned: np.ndarray | None  # (6,3) resolved (least-squares) baselines
+    baselines_ned: np.ndarray | None  # (pairs, 3) resolved (least-squares) baselines
     chi2: float
     residual_rms_m: float
     ratio: float  # second-best / best rigid χ² among the geometric survivors (inf if one)
@@ -431,13 +447,13 @@ class FastResolution:
 def _heading_candidates(dd: DoubleDifferences, layout: np.ndarray, tilt: tuple[float, float],
                         heading_step_deg: float, neighbour_margin: float,
                         max_ambiguous: int) -> np.ndarray:
-    """Distinct integer sets (m, 3, n) predicted from the tilt and trial headings."""
+    """Distinct integer sets (sets, baselines, n) predicted from the tilt and trial headings."""
     headings = np.radians(np.arange(0.0, 360.0, heading_step_deg))
-    a0 = layout[:3]
+    a0 = layout[:dd.n_baselines]
     sets = []
     for psi in headings:
         C = euler_to_dcm(tilt[0], tilt[1], psi)
-        pred = (C @ a0.T).T @ dd.H.T / dd.wavelength  # (3, n) cycles
+        pred = (C @ a0.T).T @ dd.H.T / dd.wavelength  # (baselines, n) cycles
         f = dd.dd - pred
         base = np.round(f)
         frac = f - base
@@ -453,7 +469,7 @@ def _heading_candidates(dd: DoubleDifferences, layout: np.ndarray, tilt: tuple[f
                 sets.append(alt)
     arr = np.array(sets)
     flat = np.unique(arr.reshape(len(arr), -1), axis=0)
-    return flat.reshape(len(flat), 3, -1)
+    return flat.reshape(len(flat), dd.n_baselines, -1)
 
 
 def _layout_tolerances(dd: DoubleDifferences, layout: np.ndarray,
@@ -481,7 +497,7 @@ def _rigid_fits(dd: DoubleDifferences, cands: np.ndarray, idx: np.ndarray,
     freedom). A wrong set that only fits with a strongly tilted (e.g. mirrored) array fails
     here, while the right one with a weak vertical geometry (few satellites on one side) is
     held level by the prior. Returns (χ², candidate, fit, passes) sorted by χ²."""
-    dof = 3 * len(dd.sats) - 3 + (2 if level is not None else 0)
+    dof = dd.n_baselines * len(dd.sats) - 3 + (2 if level is not None else 0)
     limit = chi2_dist.ppf(chi2_quantile, dof)
     fits = []
     for k in idx:
@@ -510,7 +526,8 @@ def resolve_fast(
     max_ambiguous: int = 4,
     survivor_ratio: float | None = None,
 ) -> FastResolution:
-    """Thesis 4.1.1: integers from IMU tilt + trial headings and the six-baseline layout test.
+    """Thesis 4.1.1: integers from IMU tilt + trial headings and the layout test of all the
+    baselines (six with four antennas, three with three).
 
     Tolerances default to the noise of the epoch's least-squares baselines (4 σ of the worst
     direction, at least 1 cm and 6°), so the test is as tight as the geometry allows.
@@ -531,7 +548,7 @@ def resolve_fast(
 
     dl, dpsi = _layout_tolerances(dd, layout, length_tolerance_m, angle_tolerance_deg)
     geo_ok = check_baseline_geometry(b6, layout, dl, dpsi)
-    dof_ls = 3 * (n - 3)
+    dof_ls = dd.n_baselines * (n - 3)
     if dof_ls > 0:
         geo_ok &= chi2_ls < chi2_dist.ppf(chi2_quantile, dof_ls)
     idx = np.flatnonzero(geo_ok)
@@ -572,7 +589,10 @@ def resolve_fast(
 class GnssCompass:
     """Attitude of the four-antenna compass, epoch by epoch, with ambiguities kept.
 
-    ``antennas_body``: (4,3) antenna phase centres in the body frame (calibration). ``method``:
+    ``antennas_body``: (n,3) antenna phase centres in the body frame (calibration). The
+    integers are resolved on the receivers that have an epoch, receiver 1 (the reference of
+    every single difference) and at least two more: a receiver lost or missing from the
+    recording leaves two independent baselines, which still give the whole attitude. ``method``:
     ``"fast"`` (thesis) or ``"conventional"``. ``systems``: constellations used for attitude
     (only those sharing the L1 carrier: G, E, J). The integers are stored per independent
     baseline (0,j) as single-difference integers with an arbitrary offset per baseline, which
@@ -602,7 +622,9 @@ class GnssCompass:
             raise ValueError(f"systems {systems!r}: only {SAME_CARRIER_SYSTEMS} share the carrier")
         self.nav = nav
         self.antennas = np.asarray(antennas_body, dtype=float)
-        self.layout = layout_baselines(self.antennas)
+        if self.antennas.ndim != 2 or len(self.antennas) < MIN_RECEIVERS:
+            raise ValueError(f"the GNSS compass needs at least {MIN_RECEIVERS} antennas, got "
+                             f"{len(self.antennas)}")
         self.method = method
         self.systems = systems
         self.mask = elevation_mask_deg
@@ -611,15 +633,14 @@ class GnssCompass:
         self.chi2_quantile = chi2_quantile
         self.survivor_ratio = survivor_ratio
         self.delay_smoothing = delay_smoothing
-        lengths = np.linalg.norm(self.layout[:3], axis=1)
-        self._filters = {
+        self._filters = {  # baselines (0, j) of the whole array
             j: DoubleDifferenceFilter(
                 baseline_sigma_m=conventional_prior_m,
                 process_noise_m=conventional_process_noise_m, phase_sigma_m=phase_sigma_m,
                 ratio_threshold=conventional_ratio,
-                known_length_m=float(lengths[j - 1]), length_tolerance_m=0.02, min_satellites=5,
-                hold=False)
-            for j in INDEPENDENT
+                known_length_m=float(np.linalg.norm(self.antennas[j] - self.antennas[0])),
+                length_tolerance_m=0.02, min_satellites=5, hold=False)
+            for j in range(1, len(self.antennas))
         }
         self.reset()
 
@@ -627,13 +648,28 @@ class GnssCompass:
         """Forget everything (cold start)."""
         self.position: np.ndarray | None = None
         self.clock_bias_s = 0.0
-        self.prev: list[GnssEpoch | None] = [None] * 4
+        self.prev: list[GnssEpoch | None] = [None] * len(self.antennas)
+        self._use(tuple(range(len(self.antennas))))
         self.integers: dict[int, dict[str, int]] | None = None
         self.delays: dict[int, float] | None = None
         self.C: np.ndarray | None = None
         self._last_fix: dict[int, BaselineFix] = {}
         for f in self._filters.values():
             f.reset()
+
+    def _use(self, receivers: tuple[int, ...]) -> None:
+        """Resolve and hold on these receivers (receiver 0 first): from here on, indices are
+        the sub-array's, and the output maps them back (``_solution``)."""
+        self.receivers = receivers
+        self.layout = layout_baselines(self.antennas[list(receivers)])
+        self._pairs = receiver_pairs(len(receivers))
+        self._independent = range(1, len(receivers))
+
+    def _resolvable(self, epochs: Sequence[GnssEpoch | None]) -> tuple[int, ...]:
+        """Every receiver with an epoch, if the reference (receiver 1) and two more have one;
+        else all of them (the resolution then finds nothing in common, and says why)."""
+        here = tuple(i for i, e in enumerate(epochs) if e is not None and e.satellites)
+        return here if 0 in here and len(here) >= MIN_RECEIVERS else tuple(range(len(epochs)))
 
     @property
     def fixed(self) -> bool:
@@ -643,13 +679,14 @@ class GnssCompass:
 
     def update(self, epochs: Sequence[GnssEpoch | None],
                imu_tilt: tuple[float, float] | None = None) -> CompassSolution:
-        """Process one epoch of the four receivers (None for a receiver that has no epoch).
+        """Process one epoch of every receiver (None for a receiver that has no epoch).
 
         ``imu_tilt`` = (roll, pitch) in rad from the accelerometer (``tilt_from_specific_force``).
         """
         epochs = list(epochs)
-        if len(epochs) != 4:
-            raise ValueError(f"the compass takes 4 receivers' epochs, got {len(epochs)}")
+        if len(epochs) != len(self.antennas):
+            raise ValueError(f"the compass takes {len(self.antennas)} receivers' epochs, got "
+                             f"{len(epochs)}")
         present = [e for e in epochs if e is not None]
         if not present:
             return CompassSolution(time=math.nan, fixed=False, method="none",
@@ -669,20 +706,20 @@ class GnssCompass:
                                    message="no standalone position yet")
         sats = sorted({s for e in present for s in e.satellites if s[0] in self.systems})
         geo = epoch_geometry(self.nav, sats, time, self.position, self.clock_bias_s, self.mask)
-        tracked = [s for s in geo.satellites
-                   if all(e is not None and math.isfinite(_phase_of(e, s)) for e in epochs)]
         broken = {s for (_, s) in slips}
+        lost = ""
         if self.integers is not None:
-            sol = self._hold(time, epochs, geo, tracked, broken, imu_tilt)
+            sub = [epochs[i] for i in self.receivers]
+            sol = self._hold(time, sub, geo, _tracked(sub, geo), broken, imu_tilt)
             if sol.fixed:
                 return sol
             lost = sol.message
-        else:
-            lost = ""
         if self.method == "conventional":
             # The float filters run only while there is no fix (they restart after a loss).
             self._feed_filters(time, epochs, geo, broken)
-        sol = self._resolve(time, epochs, geo, tracked, imu_tilt)
+        self._use(self._resolvable(epochs))
+        sub = [epochs[i] for i in self.receivers]
+        sol = self._resolve(time, sub, geo, _tracked(sub, geo), imu_tilt)
         if lost and not sol.fixed:
             sol.message = f"{lost}; {sol.message}"
         return sol
@@ -694,15 +731,16 @@ class GnssCompass:
         dd = double_differences(epochs, geo, tracked, self.phase_sigma)
         if dd is None or dd.n_satellites < 4:
             n = 0 if dd is None else dd.n_satellites
-            silent = [str(i + 1) for i, e in enumerate(epochs) if e is None]
+            silent = [str(self.receivers[i] + 1) for i, e in enumerate(epochs) if e is None]
             why = f"{n} common satellites < 4"
-            if silent:  # the integers are resolved on the three baselines from receiver 1
-                why += (f": receiver {', '.join(silent)} without an epoch (a fix needs all "
-                        "four receivers)")
+            if silent:  # the integers are resolved on the baselines from receiver 1
+                why += (f": receiver {', '.join(silent)} without an epoch (a fix needs "
+                        f"receiver 1 and {MIN_RECEIVERS - 1} others)")
             return CompassSolution(time=time, fixed=False, method="none", n_satellites=n,
                                    message=why)
         if self.method == "fast":
-            res = resolve_fast(dd, self.antennas, imu_tilt, heading_step_deg=self.heading_step,
+            res = resolve_fast(dd, self.antennas[list(self.receivers)], imu_tilt,
+                               heading_step_deg=self.heading_step,
                                chi2_quantile=self.chi2_quantile,
                                survivor_ratio=self.survivor_ratio)
             if not res.fixed:
@@ -719,7 +757,8 @@ class GnssCompass:
             integers, ratio = got
             # The per-baseline fixes must also fit ONE rigid array.
             fit = rigid_fit(dd, integers, self.layout)
-            if fit.chi2 > chi2_dist.ppf(self.chi2_quantile, 3 * len(dd.sats) - 3):
+            if fit.chi2 > chi2_dist.ppf(self.chi2_quantile,
+                                        dd.n_baselines * len(dd.sats) - 3):
                 return CompassSolution(time=time, fixed=False, method="none",
                                        n_satellites=dd.n_satellites, message="fixed set fails "
                                        f"the rigid-fit χ² ({fit.chi2:.1f})")
@@ -752,11 +791,13 @@ class GnssCompass:
             self._last_fix[j] = f.update(time, sds)
 
     def _conventional_integers(self, dd: DoubleDifferences) -> tuple[np.ndarray, float] | str:
-        """DD integers of the three baselines from the float filters (all must be fixed)."""
+        """DD integers of the independent baselines from the float filters (all must be
+        fixed)."""
         fixes = self._last_fix
-        integers = np.zeros((3, len(dd.sats)), dtype=np.int64)
+        integers = np.zeros((dd.n_baselines, len(dd.sats)), dtype=np.int64)
         ratios = []
-        for j in INDEPENDENT:
+        for k in self._independent:
+            j = self.receivers[k]
             fix = fixes.get(j)
             if fix is None or not fix.fixed:
                 why = "no float solution" if fix is None else fix.message
@@ -765,7 +806,7 @@ class GnssCompass:
             sd = {fix.reference: 0, **fix.integers}
             if dd.reference not in sd or any(s not in sd for s in dd.sats):
                 return f"baseline (0,{j}) fixed on other satellites"
-            integers[j - 1] = [sd[s] - sd[dd.reference] for s in dd.sats]
+            integers[k - 1] = [sd[s] - sd[dd.reference] for s in dd.sats]
             ratios.append(fix.ratio)
         return integers, float(min(ratios))
 
@@ -776,7 +817,7 @@ class GnssCompass:
         lam = dd.wavelength
         e_ref = geo.satellites[dd.reference].line_of_sight
         C_le = geo.C_ecef_to_level.T
-        for j in INDEPENDENT:
+        for j in self._independent:
             b_ecef = C_le @ (C @ self.layout[j - 1])
             n_ref = int(round(_sd(epochs, 0, j, dd.reference) - e_ref @ b_ecef / lam))
             per = {dd.reference: n_ref}
@@ -795,22 +836,23 @@ class GnssCompass:
             for s in list(per):
                 if s in broken or s not in geo.satellites:
                     del per[s]
-        # ``tracked`` holds only satellites of all four receivers: a receiver missing this
+        # ``tracked`` holds only satellites of all the receivers: a receiver missing this
         # epoch leaves the double differences empty and the single differences take over.
-        fixed_sats = [s for s in tracked if all(s in self.integers[j] for j in INDEPENDENT)]
-        sd_sats = [s for s in geo.satellites if any(s in self.integers[j] for j in INDEPENDENT)]
+        ind = self._independent
+        fixed_sats = [s for s in tracked if all(s in self.integers[j] for j in ind)]
+        sd_sats = [s for s in geo.satellites if any(s in self.integers[j] for j in ind)]
         C_prev = self.C
         if len(fixed_sats) >= 3:
             dd = double_differences(epochs, geo, fixed_sats, self.phase_sigma)
             ref = dd.reference
             ints = np.array([[self.integers[j][s] - self.integers[j][ref] for s in dd.sats]
-                             for j in INDEPENDENT])
+                             for j in self._independent])
             fit = rigid_fit(dd, ints, self.layout, C0=C_prev)
             chi2 = fit.chi2
             if imu_tilt is not None:
                 fit = rigid_fit(dd, ints, self.layout, C0=fit.C_body_to_level, tilt=imu_tilt)
             C, rms, cov = fit.C_body_to_level, fit.residual_rms_m, fit.covariance
-            limit = chi2_dist.ppf(self.chi2_quantile, 3 * len(dd.sats) - 3)
+            limit = chi2_dist.ppf(self.chi2_quantile, dd.n_baselines * len(dd.sats) - 3)
             b6 = None
             if len(dd.sats) >= 3:
                 b0, _ = _baseline_ls(dd, ints)
@@ -829,7 +871,8 @@ class GnssCompass:
             los = {s: geo.los_ned(s) for s in sd_sats}
             sig = {s: elevation_sigma(self.phase_sigma, geo.satellites[s].elevation)
                    for s in sd_sats}
-            att = attitude_from_single_differences(zetas, los, self.antennas, C_prev,
+            att = attitude_from_single_differences(zetas, los, self.antennas[list(self.receivers)],
+                                                   C_prev,
                                                    tilt=imu_tilt, sigma_u=sig)
             if att is None:
                 return self._lose(time, f"{len(sd_sats)} satellite(s) with fixed integers")
@@ -862,7 +905,7 @@ class GnssCompass:
         assert self.integers is not None and self.delays is not None
         n = {0: {s: 0 for s in sats}, **self.integers}
         d = {0: 0.0, **self.delays}
-        for i, j in BASELINE_PAIRS:
+        for i, j in self._pairs:
             per = {}
             for s in sats:
                 sd = _sd(epochs, i, j, s)
@@ -879,14 +922,14 @@ class GnssCompass:
         """Integers of satellites without one, from the known attitude (and D̂ or a DD)."""
         assert self.integers is not None
         C_le = geo.C_ecef_to_level.T
-        fixed = [s for s in tracked if all(s in self.integers[j] for j in INDEPENDENT)]
+        fixed = [s for s in tracked if all(s in self.integers[j] for j in self._independent)]
         ref = max(fixed, key=lambda s: geo.satellites[s].elevation) if fixed else None
         for s in tracked:
-            if all(s in self.integers[j] for j in INDEPENDENT):
+            if all(s in self.integers[j] for j in self._independent):
                 continue
             lam = geo.wavelengths[s]
             values = {}
-            for j in INDEPENDENT:
+            for j in self._independent:
                 b = C_le @ (C @ self.layout[j - 1])
                 e = geo.satellites[s].line_of_sight
                 if ref is not None:
@@ -908,7 +951,7 @@ class GnssCompass:
         assert self.integers is not None
         C_le = geo.C_ecef_to_level.T
         new = {}
-        for j in INDEPENDENT:
+        for j in self._independent:
             b = C_le @ (C @ self.layout[j - 1])
             vals = []
             for s, n in self.integers[j].items():
@@ -918,13 +961,14 @@ class GnssCompass:
                     vals.append(lam * sd - lam * n - geo.satellites[s].line_of_sight @ b)
             if vals:
                 new[j] = float(np.median(vals))
-        if len(new) < 3:
+        if len(new) < len(self._independent):
             return
         if first or self.delays is None:
             self.delays = new
         else:
             a = self.delay_smoothing
-            self.delays = {j: self.delays[j] + a * (new[j] - self.delays[j]) for j in INDEPENDENT}
+            self.delays = {j: self.delays[j] + a * (new[j] - self.delays[j])
+                           for j in self._independent}
 
     # -------------------------------------------------------------- output
 
@@ -932,19 +976,27 @@ class GnssCompass:
                   rms: float, ratio: float, reference: str | None,
                   covariance: np.ndarray | None) -> CompassSolution:
         assert self.integers is not None
-        ints = {(0, j): dict(self.integers[j]) for j in INDEPENDENT}
-        for i, j in BASELINE_PAIRS[3:]:
+        rx = self.receivers  # the sub-array's indices back to the receivers'
+        ints = {(rx[0], rx[j]): dict(self.integers[j]) for j in self._independent}
+        for i, j in self._pairs[len(self._independent):]:
             common = set(self.integers[i]) & set(self.integers[j])
-            ints[(i, j)] = {s: self.integers[j][s] - self.integers[i][s] for s in sorted(common)}
+            ints[(rx[i], rx[j])] = {s: self.integers[j][s] - self.integers[i][s]
+                                    for s in sorted(common)}
         delays = None
         if self.delays is not None:
             d = {0: 0.0, **self.delays}
-            delays = {(i, j): d[j] - d[i] for i, j in BASELINE_PAIRS}
+            delays = {(rx[i], rx[j]): d[j] - d[i] for i, j in self._pairs}
         return CompassSolution(time=time, fixed=True, method=method, C_body_to_level=C,
                                euler=dcm_to_euler(C), baselines_ned=b6, integers=ints,
                                n_satellites=n_sat, residual_rms_m=rms, ratio=ratio,
                                reference=reference, delays_m=delays,
-                               attitude_covariance=covariance)
+                               attitude_covariance=covariance, receivers=rx)
+
+
+def _tracked(epochs: Sequence[GnssEpoch | None], geo: EpochGeometry) -> list[str]:
+    """The satellites with a carrier phase at every one of ``epochs``."""
+    return [s for s in geo.satellites
+            if all(e is not None and math.isfinite(_phase_of(e, s)) for e in epochs)]
 
 
 def _phase_of(epoch: GnssEpoch, sat: str) -> float:

@@ -451,7 +451,8 @@ class Fusion:
 def _four_antennas(antennas: np.ndarray) -> np.ndarray:
     """The compass's four antennas; a receiver missing from the recording (three antennas
     given) stands at the centroid of the others, so the array centre stays where it is, and
-    never observes anything (its epochs are all missing)."""
+    never observes anything (its epochs are all missing: the compass resolves on the three
+    others, the carrier phase's single differences take the pairs that have epochs)."""
     if len(antennas) >= N_RECEIVERS:
         return antennas[:N_RECEIVERS]
     if len(antennas) < 2:

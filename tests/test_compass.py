@@ -271,20 +271,67 @@ def test_compass_holds_attitude_on_two_satellites_and_a_dropout(nav):
             assert abs(heading_error_deg(sol.C_body_to_level, float(k))) < 2.0
 
 
-def test_a_silent_receiver_is_named_when_the_compass_cannot_fix(nav):
-    """Without one receiver the compass has no common satellites (its integers are resolved
-    on the three baselines from receiver 1): the message says which receiver, not only the
-    count, so that a slow ship that cannot start from its course says why."""
-    obs, _ = simulate_gnss(SMALL_BOAT, turning, nav, START, 3.0, seed=4, errors=NO_SLIPS)
+def test_three_antennas_fix_from_one_epoch(nav):
+    """A receiver lost leaves three antennas: three baselines, two of them independent, and
+    the layout test on three angles instead of fifteen. Still one epoch, the true integers,
+    never a wrong set — with every satellite and with only four GPS ones."""
+    rng = np.random.default_rng(8)
+    obs, _ = simulate_gnss(SMALL_BOAT, turning, nav, START, 10.0, seed=9, errors=NO_SLIPS)
+    fixed = 0
+    for lost in (3, 0):  # the last receiver; the reference (resolve_fast takes any three)
+        here = [i for i in range(4) if i != lost]
+        layout = cm.layout_baselines(ANTENNAS[here])
+        assert layout.shape == (3, 3)
+        for k in range(len(obs[0])):
+            eps = [obs[i][k] for i in here]
+            geo, dd = epoch_dd(nav, eps, systems="G")
+            four = [dd.reference, *sorted(dd.sats, key=lambda s: -geo.satellites[s].elevation)[:3]]
+            for d in (dd, cm.double_differences(eps, geo, four)):
+                assert d.n_baselines == 2
+                res = cm.resolve_fast(d, ANTENNAS[here], noisy_tilt(float(k), rng))
+                if not res.fixed:
+                    continue
+                fixed += 1
+                C = euler_to_dcm(*attitude(k))
+                truth = np.round(d.dd - (C @ layout[:2].T).T @ d.H.T / d.wavelength)
+                assert np.array_equal(res.integers, truth), (lost, k, d.n_satellites)
+                assert abs(heading_error_deg(res.C_body_to_level, float(k))) < 6.0
+                assert res.baselines_ned.shape == (3, 3)
+    assert fixed >= 0.9 * 4 * len(obs[0])
+
+
+def test_compass_fixes_and_holds_on_the_receivers_it_has(nav):
+    """Receiver 4 never delivers (a cable cut, or missing from the recording): the compass
+    resolves on receivers 1–3 from the first epoch and holds through slips, with the true
+    integers and an honest heading σ. Without receiver 1 — the reference of every single
+    difference — or with two receivers gone, it does not fix, and says which are missing."""
+    rng = np.random.default_rng(3)
+    slips = dataclasses.replace(GnssErrorModel(), slip_rate_per_epoch=1.0 / 150.0)
+    obs, truth = simulate_gnss(SMALL_BOAT, turning, nav, START, 40.0, seed=4, errors=slips)
     comp = cm.GnssCompass(nav, ANTENNAS)
+    errors, sigmas = [], []
     for k in range(len(obs[0])):
-        sol = comp.update([obs[0][k], obs[1][k], obs[2][k], None])
-    assert not sol.fixed
-    assert sol.message == "0 common satellites < 4: receiver 4 without an epoch (a fix needs " \
-        "all four receivers)", sol.message
-    comp = cm.GnssCompass(nav, ANTENNAS)  # all four: fixed, nothing to name
-    sol = comp.update([o[0] for o in obs])
-    assert sol.fixed and "receiver" not in sol.message
+        sol = comp.update([obs[0][k], obs[1][k], obs[2][k], None], noisy_tilt(float(k), rng))
+        assert sol.fixed, (k, sol.message)
+        assert sol.method == ("fast" if k == 0 else "hold-dd") and sol.receivers == (0, 1, 2)
+        errors.append(heading_error_deg(sol.C_body_to_level, float(k)))
+        sigmas.append(math.degrees(math.sqrt(sol.attitude_covariance[2, 2])))
+    rms = np.sqrt(np.mean(np.square(errors)))
+    assert rms < 1.0 and np.max(np.abs(errors)) < 3.0
+    assert rms < np.mean(sigmas) < 6.0 * rms + 0.3
+    assert set(sol.integers) == {(0, 1), (0, 2), (1, 2)} and len(sol.delays_m) == 3
+    for j in (1, 2):
+        held = sol.integers[(0, j)]
+        assert len({held[s] - (truth.ambiguities[0][s] - truth.ambiguities[j][s])
+                    for s in held}) == 1
+    for gone, named in (((0,), "receiver 1 without"), ((2, 3), "receiver 3, 4 without")):
+        comp = cm.GnssCompass(nav, ANTENNAS)
+        for k in range(3):
+            sol = comp.update([None if i in gone else obs[i][k] for i in range(4)])
+            assert not sol.fixed
+            assert named in sol.message and "a fix needs receiver 1 and 2 others" in sol.message
+    with pytest.raises(ValueError, match="at least 3 antennas"):
+        cm.GnssCompass(nav, ANTENNAS[:2])
 
 
 # --------------------------------------------------------- real static pair (DD KF)
