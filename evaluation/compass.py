@@ -213,7 +213,8 @@ class _VelocityErrors:
             eta = eta_observations(self.prev, cur, prev_geo, geo)
             truth = prep.centroid_velocity(prev_geo.time, t)
             self.count += int(scored)
-            loose = [loose_velocity(eta.for_antenna(i), geo.C_ecef_to_level) for i in range(4)]
+            loose = [loose_velocity(eta.for_antenna(i), geo.C_ecef_to_level)
+                     for i in range(len(cur))]
             lever = dict(lever_arms_body=prep.antennas - prep.centroid if C is not None else None,
                          C_body_to_level=C, omega_body=prep.gyro_mean(prev_geo.time, t))
             snap = tight_velocity(eta.rows, **lever)
