@@ -15,7 +15,7 @@ a few cm per minute of trajectory otherwise).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 
 import numpy as np
 
@@ -47,6 +47,7 @@ ROUNDING_SIGMA_CYCLES = 0.12  # predicted single difference must be this sure to
 ROUNDING_FRACTION = 0.3  # ... and the measured fraction this close to an integer
 DELAY_SEED_ATTITUDE = math.radians(8.0)  # attitude σ below which the delays' fractions are found
 DELAY_SEED_COHERENCE = 0.8  # |mean phasor| of the fractions below this: they disagree
+DELAY_UNKNOWN_M = 0.1  # σ of a delay against a receiver never tracked: any fraction of a cycle
 SD_INCONSISTENT_FRACTION = 0.5  # this share of the single differences rejected: a fault
 MIN_ATTITUDE_ROWS = 8  # single differences for the attitude check (3 unknowns, a few over)
 ATTITUDE_MIN_SPREAD = 0.3  # the least scatter of their stated σ the attitude check assumes
@@ -68,15 +69,16 @@ class SdIntegers:
             self._strikes.pop(key, None)
 
     def rows(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry, C_el: np.ndarray,
-             ekf: ErrorStateEkf, phase_sigma: float, resolve: bool = True) -> list[SdRow]:
-        """Rows of the satellites with known integers; new ones are rounded first."""
+             ekf: ErrorStateEkf, phase_sigma: float, receivers: Collection[int]) -> list[SdRow]:
+        """Rows of the satellites with known integers; new ones are rounded first. Only the
+        ``receivers`` whose delays are known take part (rounding needs D̂)."""
         out: list[SdRow] = []
         for sat, g in geo.satellites.items():
             if sat[0] not in SAME_CARRIER_SYSTEMS:
                 continue
             lam = geo.wavelengths[sat]
             phase = {i: e.satellites[sat].carrier_phase for i, e in enumerate(epochs)
-                     if e is not None and sat in e.satellites
+                     if i in receivers and e is not None and sat in e.satellites
                      and math.isfinite(e.satellites[sat].carrier_phase)}
             if len(phase) < 2:
                 continue
@@ -85,8 +87,7 @@ class SdIntegers:
                     self.drop([i])
             e = C_el @ g.line_of_sight
             sigma = elevation_sigma(phase_sigma, g.elevation)
-            if resolve:
-                self._resolve(sat, phase, lam, e, sigma, ekf)
+            self._resolve(sat, phase, lam, e, sigma, ekf)
             known = sorted(i for i in phase if (i, sat) in self.A)
             if len(known) < 2:
                 continue
@@ -150,7 +151,7 @@ class CarrierPhaseCoupling:
         self.options = options
         self.cfg = config
         self.integers = SdIntegers()
-        self.delays_known = False
+        self.delays_known: set[int] = set()  # receivers whose δ̂ shares one reference
         self.last_velocity_time = -math.inf
         self.n_sats = 0  # satellites that served the last velocity update
         self.n_sd_sats = 0  # ... and the last single-difference update
@@ -183,10 +184,9 @@ class CarrierPhaseCoupling:
         self.integers.drop([key for key in slips if key in self.integers.A])
         sd_rows: list[SdRow] = []
         if opt.use_cpp:
-            if not self.delays_known:
-                self._seed_delays(epochs, geo, ekf, origin)
+            self._seed_delays(epochs, geo, ekf, origin)
             sd_rows = self.integers.rows(epochs, geo, origin.C_ecef_to_level, ekf,
-                                         cfg.phase_sigma_m, resolve=self.delays_known)
+                                         cfg.phase_sigma_m, self.delays_known)
         self.n_sats = len(self._apply(rows, sd_rows, ekf, origin))
         if front.spp_ecef is not None:
             self._spp_aiding(front.spp_ecef, ekf, origin)
@@ -328,42 +328,61 @@ class CarrierPhaseCoupling:
 
     def _seed_delays(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry,
                      ekf: ErrorStateEkf, origin: WorldOrigin) -> None:
-        """D̂_1j from the fractional parts of λΦ_1j − e·Ĉb_1j over all satellites (common
-        clock: the same for every satellite), given the compass/INS attitude."""
-        if max(np.linalg.eigvalsh(ekf.covariance(ekf.ix.E))) > DELAY_SEED_ATTITUDE ** 2:
+        """The delays of receivers that have none yet: D̂_rj from the fractional parts of
+        λΦ_rj − e·Ĉb_rj over all satellites (common clock: the same for every satellite),
+        given the compass/INS attitude, against a receiver ``r`` already known — at the first
+        epoch receiver 1, or the first one tracking when it is silent. A receiver silent
+        until then is seeded when it comes (its δ̂ was never known: rounding its integers
+        against a guess would fix them a fraction of a cycle off)."""
+        present = [i for i, e in enumerate(epochs) if e is not None and e.satellites]
+        waiting = [j for j in present if j not in self.delays_known]
+        if not waiting or len(present) < 2 \
+                or max(np.linalg.eigvalsh(ekf.covariance(ekf.ix.E))) > DELAY_SEED_ATTITUDE ** 2:
             return  # a fraction needs the baselines to ~1 cm
+        known = [i for i in present if i in self.delays_known]
+        ref = known[0] if known else present[0]
+        d = np.concatenate([[0.0], ekf.delays])  # d_j − d_i = D̂_ij, d_0 ≡ 0
+        if not known:
+            d[:] = 0.0  # the first: ``ref``'s delay is the reference of the others
+        found = {j: self._delay_fraction(epochs, geo, ekf, origin, ref, j)
+                 for j in waiting if j != ref}
+        found = {j: d[ref] + f for j, f in found.items() if f is not None}
+        if not found:
+            return
+        d[list(found)] = list(found.values())
+        self.delays_known |= {ref, *found}
+        if 0 in self.delays_known:
+            d -= d[0]  # receiver 1's δ̂ is 0 by definition: a shift of all (pairs only differ)
+            ekf.reset_delays(d[1:], self.cfg.init_delay)
+        else:  # found against ``ref``: against receiver 1 they are a fraction of a cycle off
+            ekf.reset_delays(d[1:], self.cfg.init_delay, reference=ref,
+                             unknown=DELAY_UNKNOWN_M)
+
+    def _delay_fraction(self, epochs: Sequence[GnssEpoch | None], geo: EpochGeometry,
+                        ekf: ErrorStateEkf, origin: WorldOrigin, i: int, j: int
+                        ) -> float | None:
+        """D̂_ij modulo one wavelength (m), None when too few satellites or they disagree."""
         C = ekf.nominal.C_body_to_level
-        delays = np.zeros(3)
-        lam = 0.0
-        if epochs[0] is None:
-            return
-        present = [j for j in (1, 2, 3) if epochs[j] is not None]
-        if not present:
-            return
-        for j in present:  # a receiver silent since the start: its delay stays unknown
-            phasors = []
-            for sat, g in geo.satellites.items():
-                if sat[0] not in SAME_CARRIER_SYSTEMS:
-                    continue
-                e0, ej = epochs[0], epochs[j]
-                if e0 is None or ej is None or sat not in e0.satellites \
-                        or sat not in ej.satellites:
-                    continue
-                sd = e0.satellites[sat].carrier_phase - ej.satellites[sat].carrier_phase
-                if not math.isfinite(sd):
-                    continue
-                lam = geo.wavelengths[sat]
-                e = origin.C_ecef_to_level @ g.line_of_sight
-                b = C @ (ekf.lever_antennas[j] - ekf.lever_antennas[0])
-                phasors.append(np.exp(2j * math.pi * (sd - e @ b / lam)))
-            if len(phasors) < 3:
-                return
-            mean = np.mean(phasors)
-            if abs(mean) < DELAY_SEED_COHERENCE:
-                return  # the fractions disagree: the attitude is not good enough
-            delays[j - 1] = lam * np.angle(mean) / (2 * math.pi)  # L1 only: one wavelength
-        ekf.reset_delays(delays, self.cfg.init_delay)
-        self.delays_known = True
+        b = C @ (ekf.lever_antennas[j] - ekf.lever_antennas[i])
+        ei, ej = epochs[i], epochs[j]
+        assert ei is not None and ej is not None
+        phasors, lam = [], 0.0
+        for sat, g in geo.satellites.items():
+            if sat[0] not in SAME_CARRIER_SYSTEMS or sat not in ei.satellites \
+                    or sat not in ej.satellites:
+                continue
+            sd = ei.satellites[sat].carrier_phase - ej.satellites[sat].carrier_phase
+            if not math.isfinite(sd):
+                continue
+            lam = geo.wavelengths[sat]
+            e = origin.C_ecef_to_level @ g.line_of_sight
+            phasors.append(np.exp(2j * math.pi * (sd - e @ b / lam)))
+        if len(phasors) < 3:
+            return None
+        mean = np.mean(phasors)
+        if abs(mean) < DELAY_SEED_COHERENCE:
+            return None  # the fractions disagree: the attitude is not good enough
+        return float(lam * np.angle(mean) / (2 * math.pi))  # L1 only: one wavelength
 
     def _spp_aiding(self, spp_ecef: np.ndarray, ekf: ErrorStateEkf,
                     origin: WorldOrigin) -> None:

@@ -83,7 +83,7 @@ class CompassSolution:
     # the assumed phase noise: [2, 2] is the heading variance (for the EKF's R).
     attitude_covariance: np.ndarray | None = None
     message: str = ""
-    receivers: tuple[int, ...] = ()  # those resolved with (receiver 0 and two or three more)
+    receivers: tuple[int, ...] = ()  # those resolved with (three or four; the first: reference)
 
 
 # ------------------------------------------------------------------------- geometry
@@ -590,9 +590,9 @@ class GnssCompass:
     """Attitude of the four-antenna compass, epoch by epoch, with ambiguities kept.
 
     ``antennas_body``: (n,3) antenna phase centres in the body frame (calibration). The
-    integers are resolved on the receivers that have an epoch, receiver 1 (the reference of
-    every single difference) and at least two more: a receiver lost or missing from the
-    recording leaves two independent baselines, which still give the whole attitude. ``method``:
+    integers are resolved on the receivers that have an epoch, at least three, the first of
+    them the reference: a receiver lost or missing from the recording leaves two independent
+    baselines, which still give the whole attitude. ``method``:
     ``"fast"`` (thesis) or ``"conventional"``. ``systems``: constellations used for attitude
     (only those sharing the L1 carrier: G, E, J). The integers are stored per independent
     baseline (0,j) as single-difference integers with an arbitrary offset per baseline, which
@@ -658,18 +658,19 @@ class GnssCompass:
             f.reset()
 
     def _use(self, receivers: tuple[int, ...]) -> None:
-        """Resolve and hold on these receivers (receiver 0 first): from here on, indices are
-        the sub-array's, and the output maps them back (``_solution``)."""
+        """Resolve and hold on these receivers (the first is the reference): from here on,
+        indices are the sub-array's, and the output maps them back (``_solution``)."""
         self.receivers = receivers
         self.layout = layout_baselines(self.antennas[list(receivers)])
         self._pairs = receiver_pairs(len(receivers))
         self._independent = range(1, len(receivers))
 
     def _resolvable(self, epochs: Sequence[GnssEpoch | None]) -> tuple[int, ...]:
-        """Every receiver with an epoch, if the reference (receiver 1) and two more have one;
-        else all of them (the resolution then finds nothing in common, and says why)."""
+        """Every receiver with an epoch, if at least three have one (the first of them is the
+        reference); else all of them (the resolution then finds nothing in common, and says
+        why)."""
         here = tuple(i for i, e in enumerate(epochs) if e is not None and e.satellites)
-        return here if 0 in here and len(here) >= MIN_RECEIVERS else tuple(range(len(epochs)))
+        return here if len(here) >= MIN_RECEIVERS else tuple(range(len(epochs)))
 
     @property
     def fixed(self) -> bool:
@@ -733,9 +734,9 @@ class GnssCompass:
             n = 0 if dd is None else dd.n_satellites
             silent = [str(self.receivers[i] + 1) for i, e in enumerate(epochs) if e is None]
             why = f"{n} common satellites < 4"
-            if silent:  # the integers are resolved on the baselines from receiver 1
+            if silent:  # the integers are resolved on the baselines from one receiver
                 why += (f": receiver {', '.join(silent)} without an epoch (a fix needs "
-                        f"receiver 1 and {MIN_RECEIVERS - 1} others)")
+                        f"{MIN_RECEIVERS} receivers)")
             return CompassSolution(time=time, fixed=False, method="none", n_satellites=n,
                                    message=why)
         if self.method == "fast":

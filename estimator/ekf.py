@@ -413,15 +413,23 @@ class ErrorStateEkf:
         J = self._displacement_rows(0)[1]
         return J @ self.kf.P @ J.T / interval**2
 
-    def reset_delays(self, delays: np.ndarray, sigma: float) -> None:
-        """New δ̂ (e.g. from the fractional parts at the compass fix), uncorrelated, σ each."""
+    def reset_delays(self, delays: np.ndarray, sigma: float, reference: int = 0,
+                     unknown: float = 0.0) -> None:
+        """New δ̂ (e.g. from the fractional parts at the compass fix), uncorrelated, σ each.
+        ``reference`` > 0: they were found against that receiver, receiver 1 not tracking:
+        its δ̂ is exact relative to the others, and all of them are off by one common
+        ``unknown`` (σ, m) against receiver 1 (pairs without it do not see that)."""
         self.flush()
         ix = self.ix
         self.delays = np.asarray(delays, float).copy()
         T = np.eye(ix.n)
         T[ix.D, ix.D] = 0.0
+        cov = np.eye(3) * sigma**2
+        if reference:
+            cov[reference - 1, reference - 1] = 0.0
+            cov += unknown**2
         extra = np.zeros((ix.n, ix.n))
-        extra[ix.D, ix.D] = np.eye(3) * sigma**2
+        extra[ix.D, ix.D] = cov
         self._transform(T, extra)
 
     # ----------------------------------------------------------------------- the update

@@ -248,11 +248,11 @@ class IntegrityMonitor:
                 continue
             self._rx_missing[i] = self._rx_missing.get(i, 0) + 1
             if self._rx_missing[i] >= self.cfg.receiver_silent_epochs:
-                # receiver 1 is the reference of every single difference (fusion and compass)
-                then = ("it is the compass's reference antenna: no carrier-phase attitude "
-                        "without it") if i == 0 else "the compass works with the other antennas"
+                # the compass and the single differences take the first receiver they have
+                # as the reference: three are enough for the whole attitude
                 self.raise_fault(kind, t, f"receiver {i + 1} silent for "
-                                 f"{self._rx_missing[i]} epochs: {then}")
+                                 f"{self._rx_missing[i]} epochs: the compass works with the "
+                                 "other antennas")
         self._stream_checks(t)
         return True
 

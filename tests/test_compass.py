@@ -300,36 +300,41 @@ def test_three_antennas_fix_from_one_epoch(nav):
     assert fixed >= 0.9 * 4 * len(obs[0])
 
 
-def test_compass_fixes_and_holds_on_the_receivers_it_has(nav):
-    """Receiver 4 never delivers (a cable cut, or missing from the recording): the compass
-    resolves on receivers 1–3 from the first epoch and holds through slips, with the true
-    integers and an honest heading σ. Without receiver 1 — the reference of every single
-    difference — or with two receivers gone, it does not fix, and says which are missing."""
+@pytest.mark.parametrize("lost", [3, 0])
+def test_compass_fixes_and_holds_on_the_receivers_it_has(nav, lost):
+    """One receiver never delivers (a cable cut, or missing from the recording; the last, or
+    the first — the reference): the compass resolves on the other three from the first epoch
+    and holds through slips, with the true integers and an honest heading σ. With two
+    receivers gone it does not fix, and says which are missing."""
     rng = np.random.default_rng(3)
     slips = dataclasses.replace(GnssErrorModel(), slip_rate_per_epoch=1.0 / 150.0)
     obs, truth = simulate_gnss(SMALL_BOAT, turning, nav, START, 40.0, seed=4, errors=slips)
+    here = tuple(i for i in range(4) if i != lost)
     comp = cm.GnssCompass(nav, ANTENNAS)
     errors, sigmas = [], []
     for k in range(len(obs[0])):
-        sol = comp.update([obs[0][k], obs[1][k], obs[2][k], None], noisy_tilt(float(k), rng))
+        sol = comp.update([None if i == lost else obs[i][k] for i in range(4)],
+                          noisy_tilt(float(k), rng))
         assert sol.fixed, (k, sol.message)
-        assert sol.method == ("fast" if k == 0 else "hold-dd") and sol.receivers == (0, 1, 2)
+        assert sol.method == ("fast" if k == 0 else "hold-dd") and sol.receivers == here
         errors.append(heading_error_deg(sol.C_body_to_level, float(k)))
         sigmas.append(math.degrees(math.sqrt(sol.attitude_covariance[2, 2])))
     rms = np.sqrt(np.mean(np.square(errors)))
     assert rms < 1.0 and np.max(np.abs(errors)) < 3.0
     assert rms < np.mean(sigmas) < 6.0 * rms + 0.3
-    assert set(sol.integers) == {(0, 1), (0, 2), (1, 2)} and len(sol.delays_m) == 3
-    for j in (1, 2):
-        held = sol.integers[(0, j)]
-        assert len({held[s] - (truth.ambiguities[0][s] - truth.ambiguities[j][s])
+    ref, others = here[0], here[1:]
+    assert set(sol.integers) == {(i, j) for i in here for j in here if i < j}
+    assert len(sol.delays_m) == 3
+    for j in others:  # N_ref,j = N_ref − N_j up to one offset per baseline
+        held = sol.integers[(ref, j)]
+        assert len({held[s] - (truth.ambiguities[ref][s] - truth.ambiguities[j][s])
                     for s in held}) == 1
-    for gone, named in (((0,), "receiver 1 without"), ((2, 3), "receiver 3, 4 without")):
+    for gone, named in (((2, 3), "receiver 3, 4 without"), ((0, 1), "receiver 1, 2 without")):
         comp = cm.GnssCompass(nav, ANTENNAS)
         for k in range(3):
             sol = comp.update([None if i in gone else obs[i][k] for i in range(4)])
             assert not sol.fixed
-            assert named in sol.message and "a fix needs receiver 1 and 2 others" in sol.message
+            assert named in sol.message and "a fix needs 3 receivers" in sol.message
     with pytest.raises(ValueError, match="at least 3 antennas"):
         cm.GnssCompass(nav, ANTENNAS[:2])
 
