@@ -51,6 +51,7 @@ DELAY_UNKNOWN_M = 0.1  # σ of a delay against a receiver never tracked: any fra
 SD_INCONSISTENT_FRACTION = 0.5  # this share of the single differences rejected: a fault
 MIN_ATTITUDE_ROWS = 8  # single differences for the attitude check (3 unknowns, a few over)
 ATTITUDE_MIN_SPREAD = 0.3  # the least scatter of their stated σ the attitude check assumes
+ATTITUDE_DELAY_SIGMA_M = 0.005  # rows whose delay is less sure than this do not judge it
 
 
 class SdIntegers:
@@ -287,18 +288,24 @@ class CarrierPhaseCoupling:
         (``cpp.robust_lsq``), beyond the χ² gate of it and the attitude covariance the INS is
         off (a gyro bias step): the rows would pull it back a little each epoch while it runs
         away, and the heading stays degrees off under a protection level of tenths. Declared,
-        and the attitude and gyro bias σ widened by the disagreement."""
+        and the attitude and gyro bias σ widened by the disagreement. Rows whose delay is not
+        known yet (just found for a receiver that came back: centimetres, common to its pairs,
+        which would read as a tilt) wait for the update that finds it."""
         interval = ekf.since_clone
         if len(sd_rows) < MIN_ATTITUDE_ROWS or not interval:
             return
         ix = ekf.ix
+        P_D = ekf.covariance(ix.D)
         A, y = [], []
         for r in sd_rows:
             pred, h = ekf.sd_model(r.ref, r.other, np.asarray(r.los_ned, float))
+            if h[ix.D] @ P_D @ h[ix.D] > ATTITUDE_DELAY_SIGMA_M ** 2:
+                continue
             s = math.sqrt(2.0) * r.sigma_m  # the difference of two receivers' phases
             A.append(h[ix.E] / s)
             y.append((r.value_m - pred) / s)
-        fit = robust_lsq(np.array(A), np.array(y), MIN_ATTITUDE_ROWS)
+        fit = robust_lsq(np.array(A), np.array(y), MIN_ATTITUDE_ROWS) \
+            if len(A) >= MIN_ATTITUDE_ROWS else None
         if fit is None:
             return
         off, inv, spread, _keep = fit

@@ -21,6 +21,9 @@ Roll, pitch, heading come from fitting the layout (body frame) to the resolved b
 by SVD for the start, then Gauss–Newton on the double differences themselves (the rigid-body
 constraint uses all six baselines with their correct correlations).
 
+With a receiver lost (or missing from a recording) the same runs on the three others: two
+independent baselines, three in all, still the whole attitude (``GnssCompass.receivers``).
+
 ``GnssCompass`` keeps the integers across epochs, re-validates them every epoch (χ² of the
 rigid fit, baseline lengths), drops a satellite on a cycle slip (``cpp.detect_cycle_slips``)
 and resolves newly risen satellites from the known attitude. With the common clock the
@@ -213,7 +216,7 @@ class DoubleDifferences:
     H: np.ndarray  # (n, 3)
     dd: np.ndarray  # (receivers − 1, n) cycles
     wavelength: float
-    cov: np.ndarray  # (3n, 3n) m², baseline-major order
+    cov: np.ndarray  # (m·n, m·n) m², baseline-major order (m independent baselines)
     sigma_u: dict[str, float]
     _whitener: np.ndarray | None = field(default=None, repr=False)
 
