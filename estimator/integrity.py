@@ -115,7 +115,9 @@ class Integrity:
 
     mode: str
     trusted: bool
-    reasons: list[str] = field(default_factory=list)  # active faults, most severe first
+    # why it is not trusted first (critical faults, protection levels beyond their limits),
+    # then the faults the fusion works around
+    reasons: list[str] = field(default_factory=list)
     hpl_m: float | None = None  # horizontal protection level
     heading_pl_deg: float | None = None
     alert_limit_m: float = 0.5
@@ -357,14 +359,16 @@ class IntegrityMonitor:
         trusted = (mode in USABLE_MODES and not critical and hpl is not None
                    and hpl <= cfg.alert_limit_m and hdg is not None
                    and hdg <= cfg.heading_alert_limit_deg)
-        reasons = [a.message for a in critical] + [a.message for k, a in self.active.items()
-                                                   if k not in CRITICAL]
+        # why it is not trusted first (the page and the alarm show the first), then the
+        # faults the fusion works around
+        reasons = [a.message for a in critical]
         if hpl is not None and hpl > cfg.alert_limit_m:
             reasons.append(f"protection level {hpl:.2f} m above the {cfg.alert_limit_m:g} m "
                            "alert limit")
         if hdg is not None and hdg > cfg.heading_alert_limit_deg:
             reasons.append(f"heading protection level {hdg:.2f}° above the "
                            f"{cfg.heading_alert_limit_deg:g}° alert limit")
+        reasons += [a.message for k, a in self.active.items() if k not in CRITICAL]
         return Integrity(mode, bool(trusted), reasons, hpl, hdg, cfg.alert_limit_m,
                          cfg.heading_alert_limit_deg)
 

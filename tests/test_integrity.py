@@ -84,6 +84,13 @@ def test_protection_level_and_trust() -> None:
     assert cfg.k(2) > 5.0  # an integrity risk of 1e-7 is far out in the tails
     wide = m.assess(1.0, "fused", cov * 400, math.radians(0.05) ** 2)
     assert not wide.trusted and "alert limit" in wide.reasons[0]
+    # a fault the fusion works around is listed after what makes the state untrusted: the
+    # page's banner and the alarm show the first reason
+    m.raise_fault("receiver-4-silent", 1.0, "receiver 4 silent: the compass works without it")
+    wide = m.assess(1.0, "fused", cov * 400, math.radians(0.05) ** 2)
+    assert "alert limit" in wide.reasons[0] and "receiver 4" in wide.reasons[1], wide.reasons
+    assert m.assess(1.0, "fused", cov, math.radians(0.05) ** 2).trusted
+    m.clear("receiver-4-silent", 1.0, "back")
     assert not m.assess(1.0, "aligning", cov, 1e-8).trusted
     assert m.assess(1.0, "coasting", cov, 1e-8).trusted
     m.raise_fault("sd-inconsistent", 1.0, "single differences off the attitude")
