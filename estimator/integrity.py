@@ -242,6 +242,7 @@ class IntegrityMonitor:
             return False
         self.last_gnss = t
         self._input(t)
+        left = sum(present)
         for i, here in enumerate(present):
             kind = f"receiver-{i + 1}-silent"
             if here:
@@ -252,9 +253,11 @@ class IntegrityMonitor:
             if self._rx_missing[i] >= self.cfg.receiver_silent_epochs:
                 # the compass and the single differences take the first receiver they have
                 # as the reference: three are enough for the whole attitude
+                then = ("the compass works with the other antennas" if left >= 3 else
+                        "2 receivers left: no compass fix, one baseline for the attitude"
+                        if left == 2 else f"{left} receiver left: no carrier-phase attitude")
                 self.raise_fault(kind, t, f"receiver {i + 1} silent for "
-                                 f"{self._rx_missing[i]} epochs: the compass works with the "
-                                 "other antennas")
+                                 f"{self._rx_missing[i]} epochs: {then}")
         self._stream_checks(t)
         return True
 

@@ -65,6 +65,11 @@ def test_monitor_streams_silent_receivers_and_the_clock() -> None:
     for k in range(1, 4):
         m.gnss(10.0 + k, [True, True, False, True])
     assert m.is_active("receiver-3-silent")
+    assert "works with the other antennas" in m.active["receiver-3-silent"].message
+    two = IntegrityMonitor()
+    for k in range(1, 4):
+        two.gnss(10.0 + k, [True, False, False, True])
+    assert "2 receivers left: no compass fix" in two.active["receiver-2-silent"].message
     assert m.is_active("imu-silent") and m.is_active("video-silent")
     m.gnss(14.0, [True, True, True, True])
     assert not m.is_active("receiver-3-silent")
