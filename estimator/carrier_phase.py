@@ -349,9 +349,8 @@ class CarrierPhaseCoupling:
             return  # a fraction needs the baselines to ~1 cm
         known = [i for i in present if i in self.delays_known]
         ref = known[0] if known else present[0]
-        d = np.concatenate([[0.0], ekf.delays])  # d_j − d_i = D̂_ij, d_0 ≡ 0
-        if not known:
-            d[:] = 0.0  # the first: ``ref``'s delay is the reference of the others
+        # d_j − d_i = D̂_ij, d_0 ≡ 0; the first seed: ``ref``'s delay is the others' reference
+        d = np.concatenate([[0.0], ekf.delays]) if known else np.zeros(len(ekf.delays) + 1)
         found = {j: self._delay_fraction(epochs, geo, ekf, origin, ref, j)
                  for j in waiting if j != ref}
         found = {j: d[ref] + f for j, f in found.items() if f is not None}

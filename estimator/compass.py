@@ -664,7 +664,8 @@ class GnssCompass:
         """Resolve and hold on these receivers (the first is the reference): from here on,
         indices are the sub-array's, and the output maps them back (``_solution``)."""
         self.receivers = receivers
-        self.layout = layout_baselines(self.antennas[list(receivers)])
+        self.sub_antennas = self.antennas[list(receivers)]
+        self.layout = layout_baselines(self.sub_antennas)
         self._pairs = receiver_pairs(len(receivers))
         self._independent = range(1, len(receivers))
 
@@ -743,7 +744,7 @@ class GnssCompass:
             return CompassSolution(time=time, fixed=False, method="none", n_satellites=n,
                                    message=why)
         if self.method == "fast":
-            res = resolve_fast(dd, self.antennas[list(self.receivers)], imu_tilt,
+            res = resolve_fast(dd, self.sub_antennas, imu_tilt,
                                heading_step_deg=self.heading_step,
                                chi2_quantile=self.chi2_quantile,
                                survivor_ratio=self.survivor_ratio)
@@ -875,8 +876,7 @@ class GnssCompass:
             los = {s: geo.los_ned(s) for s in sd_sats}
             sig = {s: elevation_sigma(self.phase_sigma, geo.satellites[s].elevation)
                    for s in sd_sats}
-            att = attitude_from_single_differences(zetas, los, self.antennas[list(self.receivers)],
-                                                   C_prev,
+            att = attitude_from_single_differences(zetas, los, self.sub_antennas, C_prev,
                                                    tilt=imu_tilt, sigma_u=sig)
             if att is None:
                 return self._lose(time, f"{len(sd_sats)} satellite(s) with fixed integers")

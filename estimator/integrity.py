@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 from scipy.stats import chi2
 
+from .compass import MIN_RECEIVERS
 from .vo import VisualOdometry, VoOutput, WorkingImage
 
 MODES = ("fused", "coasting", "aligning", "no position")
@@ -253,7 +254,7 @@ class IntegrityMonitor:
             if self._rx_missing[i] >= self.cfg.receiver_silent_epochs:
                 # the compass and the single differences take the first receiver they have
                 # as the reference: three are enough for the whole attitude
-                then = ("the compass works with the other antennas" if left >= 3 else
+                then = ("the compass works with the other antennas" if left >= MIN_RECEIVERS else
                         "2 receivers left: no compass fix, one baseline for the attitude"
                         if left == 2 else f"{left} receiver left: no carrier-phase attitude")
                 self.raise_fault(kind, t, f"receiver {i + 1} silent for "
