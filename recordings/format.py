@@ -23,6 +23,7 @@ from typing import Any, TypeVar
 import cv2
 import numpy as np
 
+from estimator.compass import MIN_RECEIVERS
 from estimator.frames import (
     datetime_from_gpst,
     ecef_to_geodetic,
@@ -914,10 +915,13 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
 
     if load_gnss:
         gnss, headers = _load_gnss(root, manifest, manifest_path, calibration, torn)
-        if len(gnss) != COMPASS_RECEIVERS:
-            notes.append(f"{len(gnss)} receivers: the GNSS compass needs {COMPASS_RECEIVERS} "
-                         "for its own attitude fix (the fusion then starts from the course "
-                         "over ground, and holds the heading with the antennas it has)")
+        if len(gnss) < MIN_RECEIVERS:
+            notes.append(f"{len(gnss)} receivers: the GNSS compass needs {MIN_RECEIVERS} for "
+                         "its own attitude fix (the fusion then starts from the course over "
+                         "ground, and holds the heading with the antennas it has)")
+        elif len(gnss) != COMPASS_RECEIVERS:
+            notes.append(f"{len(gnss)} receivers, not the compass's {COMPASS_RECEIVERS}: its "
+                         "attitude from the baselines it has")
         notes += _early_ends(manifest, {rel: eps[-1].time for rel, eps in
                                         zip(files["gnss_obs"], gnss, strict=True) if eps})
         nav_path = root / files["gnss_nav"]
