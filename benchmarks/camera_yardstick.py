@@ -15,7 +15,10 @@ functions (``evaluation.report.evaluate``), trimmed to what the issue's targets 
 - the port structure: depth error of the converged refined points within 30 m of the camera
   at the end (rendered true depth at each landmark's last view);
 - the designated targets on the server's path (``FollowedTarget``, no ablations): the share
-  of tracked frames whose distance is within tolerance (max(0.1 m, 1 %)) and within 2σ;
+  of tracked frames whose distance is within tolerance (max(0.1 m, 1 %)) and within 2σ; and
+  what limits them (``evaluation.tracking.error_sources``): the share of refined clicks
+  within tolerance at their last view triangulated from their views as they are (``src``),
+  with the true pixels (``src px``) and with the true poses (``src pose``);
 - the VO's cost per frame (ms), and how often the main fusion found it inconsistent with the
   gyro or the fused track and excluded it (``estimator.vo_coupling.VoConsistency``).
 
@@ -65,6 +68,9 @@ FIGURES = (
     ("target_within_2sigma", "tgt 2σ", "high", 0.95, None, "{:.2f}"),
     ("target_median_m", "tgt med", "low", None, None, "{:.3f}"),
     ("target_frames", "tgt n", "high", None, None, "{:.0f}"),
+    ("target_src_as_is", "src", "high", None, None, "{:.2f}"),
+    ("target_src_true_px", "src px", "high", None, None, "{:.2f}"),
+    ("target_src_true_poses", "src pose", "high", None, None, "{:.2f}"),
     ("vo_tracking", "VO trk", "high", None, None, "{:.2f}"),
     ("vo_segments", "segs", "low", None, None, "{:.0f}"),
     ("vo_exclusions", "VO excl", "low", None, None, "{:.0f}"),
@@ -124,7 +130,7 @@ def evaluate_seed(cache: str | None, scenario: str, seed: int | str, end_s: floa
     ``cache``, ``seed`` is the directory of a recording to evaluate as it is."""
     from evaluation.records import to_json
     from evaluation.report import MAIN, ReportOptions, evaluate
-    from evaluation.tracking import DESIGNATED
+    from evaluation.tracking import DESIGNATED, DISTANCE_TOL_FRACTION, DISTANCE_TOL_M
     from recordings.format import load
 
     t_start = time.perf_counter()
@@ -158,6 +164,16 @@ def evaluate_seed(cache: str | None, scenario: str, seed: int | str, end_s: floa
     dist = tr.distance_m if tr is not None else None
     row["target_within_tol"] = dist.within_tolerance if dist is not None else None
     row["target_within_2sigma"] = tr.distance_within_2_sigma if tr is not None else None
+    # What limits the targets (``evaluation.tracking.error_sources``): the share of refined
+    # clicks within tolerance at their last view, from their views as they are, with the true
+    # pixels, with the true poses.
+    sources = [c.error_sources for c in (rep.tracking.clicks if rep.tracking else [])
+               if c.error_sources is not None]
+    for key, name in (("as_is", "target_src_as_is"), ("true_pixels", "target_src_true_px"),
+                      ("true_poses", "target_src_true_poses")):
+        ok = [abs(s[key]) <= max(DISTANCE_TOL_M, DISTANCE_TOL_FRACTION * s["true_range"])
+              for s in sources]
+        row[name] = float(np.mean(ok)) if ok else None
     row["target_median_m"] = dist.median if dist is not None else None
     row["target_frames"] = dist.n if dist is not None else 0
     outs = ev.rs.vo.outputs

@@ -232,6 +232,11 @@ class ClickResult:
     support_points: int | None = None
     true_point_ned: list[float] | None = None
     per_method: dict[str, MethodScores] = field(default_factory=dict)
+    # The designated distance at the target's last solved view, triangulated from its views
+    # as they are and with the truth put in for the pixels, the poses or both
+    # (``tracking.error_sources``): what limits it. m, signed, and the true range;
+    # None when never refined.
+    error_sources: dict[str, float] | None = None
     skipped: str | None = None
 
 

@@ -38,7 +38,8 @@ from engine.targets import (
     designate,
     target_window,
 )
-from estimator.tracking import METHODS, TargetParams, TargetTracker
+from estimator.landmarks import triangulate_point
+from estimator.tracking import METHODS, DesignatedTarget, TargetParams, TargetTracker
 from recordings.format import Recording
 
 from .records import ClickResult, DistanceBand, DistanceScores, MethodScores, TrackingReport
@@ -113,6 +114,10 @@ def evaluate_tracking(rec: Recording, run: FusionRun, clicks: list[Click],
     for f in active:
         f.result.per_method = {m: _method_scores([f.rows[m]], f.seconds[m], brief=True)
                                for m in methods}
+        target = f.trackers.get(DESIGNATED)
+        if target is not None:
+            f.result.error_sources = error_sources(
+                rec, target.tracker, np.asarray(rec.scene_points[f.point], float))  # type: ignore[attr-defined]
     fixed = [r for f in active for r in f.rows[methods[0]]] if methods else []
     return TrackingReport(
         clicks=[f.result for f in followed], methods=scores,
@@ -227,6 +232,40 @@ def _step(f: _Followed, rec: Recording, run: FusionRun, truth: Truth, image: np.
             else math.nan
         f.rows[m].append(_Row(k, tracking, in_view, err, d_err, d_true, d_fixed - d_true, reacq,
                               err_any, (k - f.result.frame) / FRAME_RATE_HZ, d_sig))
+
+
+def error_sources(rec: Recording, target: DesignatedTarget, true_point: np.ndarray
+                  ) -> dict[str, float] | None:
+    """The target's distance error at its last solved view, its views (``DesignatedTarget.
+    seen``: tracked pixels, solved attitudes, fused centres) triangulated as they are and with
+    the truth put in for the pixels (the true point's projections), the poses (true attitudes
+    and camera centres), or both: which of them limits the distance on this recording. A weak
+    prior, the same for all, so that only the views speak (``as_is`` is then not the target's
+    own distance, which starts from the click's point); ``true_range`` the true distance.
+    None before the first refine."""
+    seen = target.seen
+    rows = np.flatnonzero(np.isfinite(seen.rotation_var))
+    if len(rows) < target.params.min_refine_views or not target.refined:
+        return None
+    rows = rows[np.argsort(np.abs(seen.t[rows] - target.click_time), kind="stable")]
+    true = true_cameras(rec, seen.t[rows], None)  # reference frame
+    xc = np.einsum("nij,nj->ni", true.C_level_to_camera, true_point - true.position)
+    true_xy = xc[:, :2] / xc[:, 2:3]
+    var = (target.params.landmark.pixel_sigma_px / target.map.focal) ** 2 \
+        + seen.rotation_var[rows]
+    last = int(np.argmax(seen.t[rows]))
+    d_true = float(np.linalg.norm(true_point - true.position[last]))
+    X0, P0 = target.click_point
+    out = {"true_range": d_true}
+    for name, C, centre, xy in (
+            ("as_is", seen.C[rows], seen.centre[rows], seen.xy[rows]),
+            ("true_pixels", seen.C[rows], seen.centre[rows], true_xy),
+            ("true_poses", true.C_level_to_camera, true.position, seen.xy[rows]),
+            ("true_both", true.C_level_to_camera, true.position, true_xy)):
+        prior = X0 + centre[0] - seen.centre[rows[0]]  # the click's point in these centres' frame
+        X = triangulate_point(C, centre, xy, var, prior, np.linalg.inv(P0) * 1e-6)[0]
+        out[name] = float(np.linalg.norm(X - centre[last])) - d_true
+    return out
 
 
 # ------------------------------------------------------------------------------ scores

@@ -659,6 +659,13 @@ def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
     assert d["frames"] == len(rec.frame_times) - k - 1
     assert d["pixel_error"]["n"] > 0 and d["pixel_error"]["median"] < 3.0
     assert d["undetected_loss_frames"] == 0
+    # what limits the distance: the true pixels and the true poses give the true point (a
+    # wrong frame or a wrong projection in the decomposition would not)
+    src = typed.clicks[0].error_sources
+    assert src is not None and set(src) == {"as_is", "true_pixels", "true_poses", "true_both",
+                                               "true_range"}
+    assert abs(src["true_both"]) < 0.005, src
+    assert all(np.isfinite(v) for v in src.values()), src
     lm_typed = evaluate_landmarks(rec, run_)
     lm = to_json(lm_typed)
     assert lm["points"] > 0 and lm["scene_point_match"]["raw"]["points"] > 0
