@@ -130,7 +130,7 @@ def evaluate_seed(cache: str | None, scenario: str, seed: int | str, end_s: floa
     ``cache``, ``seed`` is the directory of a recording to evaluate as it is."""
     from evaluation.records import to_json
     from evaluation.report import MAIN, ReportOptions, evaluate
-    from evaluation.tracking import DESIGNATED, DISTANCE_TOL_FRACTION, DISTANCE_TOL_M
+    from evaluation.tracking import DESIGNATED, error_source_shares
     from recordings.format import load
 
     t_start = time.perf_counter()
@@ -167,13 +167,10 @@ def evaluate_seed(cache: str | None, scenario: str, seed: int | str, end_s: floa
     # What limits the targets (``evaluation.tracking.error_sources``): the share of refined
     # clicks within tolerance at their last view, from their views as they are, with the true
     # pixels, with the true poses.
-    sources = [c.error_sources for c in (rep.tracking.clicks if rep.tracking else [])
-               if c.error_sources is not None]
+    shares = error_source_shares(rep.tracking.clicks) if rep.tracking is not None else None
     for key, name in (("as_is", "target_src_as_is"), ("true_pixels", "target_src_true_px"),
                       ("true_poses", "target_src_true_poses")):
-        ok = [abs(s[key]) <= max(DISTANCE_TOL_M, DISTANCE_TOL_FRACTION * s["true_range"])
-              for s in sources]
-        row[name] = float(np.mean(ok)) if ok else None
+        row[name] = shares[key] if shares is not None else None
     row["target_median_m"] = dist.median if dist is not None else None
     row["target_frames"] = dist.n if dist is not None else 0
     outs = ev.rs.vo.outputs

@@ -12,7 +12,7 @@ from .records import (
     TrackingReport,
     TrajectoryScores,
 )
-from .tracking import SETTLED_S
+from .tracking import SETTLED_S, error_source_shares
 
 
 def f(x: Any, spec: str = ".3f") -> str:
@@ -194,6 +194,12 @@ def format_tracking_report(tracking: TrackingReport, landmarks: LandmarkReport |
                      f"{f(late.median, '.3f')} m p90 {f(late.p90, '.2f')} m, within tol "
                      f"{f(late.within_tolerance, '.0%')}; |error| ≤ 2σ in "
                      f"{f(d.distance_within_2_sigma, '.0%')} of the frames")
+    shares = error_source_shares(tracking.clicks)
+    if shares is not None:
+        lines.append(f"  what limits it ({shares['clicks']:.0f} refined clicks within tol at "
+                     f"their last view, views triangulated): as tracked "
+                     f"{shares['as_is']:.0%}, with the true pixels {shares['true_pixels']:.0%},"
+                     f" with the true poses {shares['true_poses']:.0%}")
     if landmarks is not None:
         lines += _landmarks(landmarks)
     return "\n".join(lines)

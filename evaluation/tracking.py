@@ -268,6 +268,20 @@ def error_sources(rec: Recording, target: DesignatedTarget, true_point: np.ndarr
     return out
 
 
+def error_source_shares(clicks: Sequence[ClickResult]) -> dict[str, float] | None:
+    """The share of the refined clicks within tolerance at their last view for each way of
+    triangulating them (``error_sources``: ``as_is``, ``true_pixels``, ``true_poses``,
+    ``true_both``) and their number (``clicks``); None when no click was refined."""
+    sources = [c.error_sources for c in clicks if c.error_sources is not None]
+    if not sources:
+        return None
+    tol = np.array([max(DISTANCE_TOL_M, DISTANCE_TOL_FRACTION * s["true_range"])
+                    for s in sources])
+    out = {k: float(np.mean(np.abs([s[k] for s in sources]) <= tol))
+           for k in ("as_is", "true_pixels", "true_poses", "true_both")}
+    return {**out, "clicks": float(len(sources))}
+
+
 # ------------------------------------------------------------------------------ scores
 
 

@@ -627,7 +627,7 @@ def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
     from evaluation.records import to_json
     from evaluation.runs import Collect, fuse
     from evaluation.text import format_tracking_report
-    from evaluation.tracking import evaluate_tracking
+    from evaluation.tracking import error_source_shares, evaluate_tracking
     from evaluation.truth import Click
     from recordings.format import load
 
@@ -666,13 +666,16 @@ def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
                                                "true_range"}
     assert abs(src["true_both"]) < 0.005, src
     assert all(np.isfinite(v) for v in src.values()), src
+    shares = error_source_shares(typed.clicks)
+    assert shares is not None and shares["true_both"] == 1.0 and shares["clicks"] == 1.0
     lm_typed = evaluate_landmarks(rec, run_)
     lm = to_json(lm_typed)
     assert lm["points"] > 0 and lm["scene_point_match"]["raw"]["points"] > 0
     assert lm["depth_truth"] is not None and lm["error_vs_views"]
     views = [row["views"] for row in lm["error_vs_views"]]
     assert views == sorted(views)
-    assert "Designated-target tracking" in format_tracking_report(typed, lm_typed)
+    text = format_tracking_report(typed, lm_typed)
+    assert "Designated-target tracking" in text and "with the true pixels" in text
 
 
 def test_a_common_attitude_error_moves_the_triangulated_point():
