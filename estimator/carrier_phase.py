@@ -304,10 +304,11 @@ class CarrierPhaseCoupling:
             s = math.sqrt(2.0) * r.sigma_m  # the difference of two receivers' phases
             A.append(h[ix.E] / s)
             y.append((r.value_m - pred) / s)
-        if len(A) < MIN_ATTITUDE_ROWS or np.linalg.matrix_rank(np.array(A), tol=1e-6) < 3:
+        A = np.array(A).reshape(-1, 3)
+        if len(A) < MIN_ATTITUDE_ROWS or np.linalg.matrix_rank(A, tol=1e-6) < 3:
             return  # one baseline (two receivers left) cannot tell a turn about itself
-        fit = robust_lsq(np.array(A), np.array(y), MIN_ATTITUDE_ROWS)
-        if fit is None or np.linalg.matrix_rank(np.array(A)[fit[3]], tol=1e-6) < 3:
+        fit = robust_lsq(A, np.array(y), MIN_ATTITUDE_ROWS)
+        if fit is None or np.linalg.matrix_rank(A[fit[3]], tol=1e-6) < 3:
             return
         off, inv, spread, _keep = fit
         # their own scatter (in units of the σ they state, which is generous: ~0.3), not

@@ -125,6 +125,15 @@ class Integrity:
     heading_alert_limit_deg: float = 1.0
 
 
+def _attitude_left(receivers: int) -> str:
+    """What the carrier-phase attitude still has with ``receivers`` tracking."""
+    if receivers >= MIN_RECEIVERS:
+        return "the compass works with the other antennas"
+    if receivers == 2:
+        return "2 receivers left: no compass fix, one baseline for the attitude"
+    return f"{receivers} receiver(s) left: no carrier-phase attitude"
+
+
 class IntegrityMonitor:
     """Input checks and the fault register of one fusion engine."""
 
@@ -254,11 +263,8 @@ class IntegrityMonitor:
             if self._rx_missing[i] >= self.cfg.receiver_silent_epochs:
                 # the compass and the single differences take the first receiver they have
                 # as the reference: three are enough for the whole attitude
-                then = ("the compass works with the other antennas" if left >= MIN_RECEIVERS else
-                        "2 receivers left: no compass fix, one baseline for the attitude"
-                        if left == 2 else f"{left} receiver left: no carrier-phase attitude")
                 self.raise_fault(kind, t, f"receiver {i + 1} silent for "
-                                 f"{self._rx_missing[i]} epochs: {then}")
+                                 f"{self._rx_missing[i]} epochs: {_attitude_left(left)}")
         self._stream_checks(t)
         return True
 
