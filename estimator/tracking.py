@@ -1031,18 +1031,16 @@ class DesignatedTarget:
             return 0
         X0, P0 = self.click_point
         info0 = np.linalg.inv(P0)
-        pixel_var = (self.params.landmark.pixel_sigma_px / self.map.focal) ** 2
-        rows = np.flatnonzero(solved)
-        rows = rows[np.argsort(np.abs(seen.t[rows] - self.click_time), kind="stable")]
+        ray_var = self.ray_variance()
+        rows = self.solved_rows()
         X, info, used = triangulate_point(seen.C[rows], seen.centre[rows], seen.xy[rows],
-                                          pixel_var + seen.rotation_var[rows], X0, info0)
+                                          ray_var[rows], X0, info0)
         n = int(used.sum())
         if n < self.params.min_refine_views or not np.isfinite(X).all():
             return 0
         P = np.linalg.inv(info)
         u = rows[used]
-        common = (seen.C[u], seen.centre[u], seen.xy[u], pixel_var + seen.rotation_var[u], X,
-                  X0, info0)
+        common = (seen.C[u], seen.centre[u], seen.xy[u], ray_var[u], X, X0, info0)
         if self.attitude_cov is not None:
             J = common_rotation_jacobian(*common)
             P = P + J @ self.attitude_cov @ J.T
@@ -1057,12 +1055,26 @@ class DesignatedTarget:
         px = float(self.camera.width) / 960.0 / self.map.focal  # normalised units of 1 px
         J = common_drift_jacobian(*common, seen.unanchored_s[u])
         P = P + (self.params.unanchored_drift_px_per_s * px) ** 2 * (J @ J.T)
-        P = P + self._halves_disagreement(rows, pixel_var, X0, info0)
+        P = P + self._halves_disagreement(rows, ray_var, X0, info0)
         self.map.x[0], self.map.P[0] = X, P
         self.refined_views = n
         return n
 
-    def _halves_disagreement(self, rows: np.ndarray, pixel_var: float, X0: np.ndarray,
+    def ray_variance(self) -> np.ndarray:
+        """(len(seen),): each view's angular variance (normalised units²) — the tracker's
+        pixel noise and what is left of its solved attitude's uncertainty (NaN before the
+        view is solved)."""
+        return (self.params.landmark.pixel_sigma_px / self.map.focal) ** 2 \
+            + self.seen.rotation_var
+
+    def solved_rows(self) -> np.ndarray:
+        """Indexes of the views with a solved attitude, nearest the click first: the order
+        ``refine`` trusts them in."""
+        seen = self.seen
+        rows = np.flatnonzero(np.isfinite(seen.rotation_var))
+        return rows[np.argsort(np.abs(seen.t[rows] - self.click_time), kind="stable")]
+
+    def _halves_disagreement(self, rows: np.ndarray, ray_var: np.ndarray, X0: np.ndarray,
                              info0: np.ndarray) -> np.ndarray:
         """(3,3): how far the points of two halves of the views disagree beyond their own
         covariances (``excess_disagreement``), the larger of two splits: the views before
@@ -1072,15 +1084,15 @@ class DesignatedTarget:
         point — moves the point of the views after the slide and not that of those before
         it, by an error no view's noise explains. A split needs ``min_refine_views`` on
         each side. ``rows``: the solved views, nearest the click first — all of them: those
-        the triangulation's gates left out are a half's evidence too."""
+        the triangulation's gates left out are a half's evidence too; ``ray_var``: every
+        view's (``ray_variance``)."""
         seen = self.seen
         after = rows[seen.t[rows] > self.click_time]  # nearest the click first: oldest first
         half = len(after) // 2
         splits = ((rows[seen.t[rows] < self.click_time], after), (after[:half], after[half:]))
         excess = np.zeros((3, 3))
         for a, b in splits:
-            E = split_disagreement(seen.C, seen.centre, seen.xy,
-                                   pixel_var + seen.rotation_var, X0, info0, a, b,
+            E = split_disagreement(seen.C, seen.centre, seen.xy, ray_var, X0, info0, a, b,
                                    self.params.min_refine_views)
             if np.trace(E) > np.trace(excess):
                 excess = E

@@ -244,15 +244,13 @@ def error_sources(rec: Recording, target: DesignatedTarget, true_point: np.ndarr
     own distance, which starts from the click's point); ``true_range`` the true distance.
     None before the first refine."""
     seen = target.seen
-    rows = np.flatnonzero(np.isfinite(seen.rotation_var))
+    rows = target.solved_rows()
     if len(rows) < target.params.min_refine_views or not target.refined:
         return None
-    rows = rows[np.argsort(np.abs(seen.t[rows] - target.click_time), kind="stable")]
     true = true_cameras(rec, seen.t[rows], None)  # reference frame
     xc = np.einsum("nij,nj->ni", true.C_level_to_camera, true_point - true.position)
     true_xy = xc[:, :2] / xc[:, 2:3]
-    var = (target.params.landmark.pixel_sigma_px / target.map.focal) ** 2 \
-        + seen.rotation_var[rows]
+    var = target.ray_variance()[rows]
     last = int(np.argmax(seen.t[rows]))
     d_true = float(np.linalg.norm(true_point - true.position[last]))
     X0, P0 = target.click_point
