@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from estimator.frames import ecef_to_ned, geodetic_to_ecef, wrap_angle
+from estimator.pipeline import EXTRAPOLATE_S
 from recordings.format import Recording
 
 from .errors import Conflict, NotFound, Unprocessable
@@ -22,6 +23,13 @@ from .overlay import pose_dict
 FRAME_MATCH_S = 0.06  # a frame_time matches a stored frame within this (frames are 0.1 s apart)
 CSV_HEADER = ("t,gpst,north,east,down,lat_deg,lon_deg,height,roll_deg,pitch_deg,yaw_deg,"
               "v_north,v_east,v_down,std_north,std_east,std_down,phase")
+
+
+def is_current(state: Any | None, t: float) -> bool:
+    """Whether ``state`` is the fused pose at frame time ``t`` (gpst). The fusion extrapolates
+    its state to a frame at most ``EXTRAPOLATE_S``; one further behind is the last it could
+    make (no IMU since): shown for that frame it would be a stale pose looking live."""
+    return state is not None and t - float(state.time) <= EXTRAPOLATE_S + 1e-6
 
 
 class History:
@@ -38,6 +46,10 @@ class History:
     # ------------------------------------------------------------------------ writing
 
     def append(self, t: float, state: Any) -> None:
+        """The state at frame time ``t``; one that is not current there is not a pose of it
+        (``is_current``) and is left out."""
+        if not is_current(state, t):
+            return
         with self.lock:
             self._times.append(t)
             self._states.append(state)
@@ -69,8 +81,7 @@ class History:
             if not self._times:
                 raise Conflict("no fused pose stored yet")
             if g > self._times[-1] + FRAME_MATCH_S:
-                raise Conflict(f"t = {t:g} s has not been replayed yet (fused poses up to "
-                               f"{self._times[-1] - self.start_gpst:.3f} s)")
+                raise Conflict(_beyond(t, self._times[-1] - self.start_gpst))
             i = bisect.bisect_right(self._times, g + 1e-9) - 1
             if i < 0:
                 raise NotFound(f"no fused pose at or before t = {t:g} s (the first is at "
@@ -90,8 +101,7 @@ class History:
                 return self._states[i]
             last = self._times[-1] - self.start_gpst
         if g > self.gpst(last) + FRAME_MATCH_S:
-            raise Conflict(f"t = {t:g} s has not been replayed yet (fused poses up to "
-                           f"{last:.3f} s)")
+            raise Conflict(_beyond(t, last))
         raise NotFound(f"no fused pose for a frame at t = {t:g} s")
 
     def at_gpst(self, t: float) -> Any | None:
@@ -209,6 +219,11 @@ class History:
                                                               - ref_euler[keep, 2])),
                                         t_rel, signed=True),
         }
+
+
+def _beyond(t: float, last: float) -> str:
+    return (f"no fused pose at t = {t:g} s: the last is at {last:.3f} s (not replayed yet, "
+            "or no position since: see the session's integrity)")
 
 
 def _stats(e: np.ndarray, t_rel: np.ndarray, signed: bool) -> dict[str, float]:

@@ -39,7 +39,7 @@ from .alarms import AlarmBook
 from .berth import Berth
 from .catalog import RecordingCatalog
 from .errors import Conflict, NotFound, TooMany, Unprocessable
-from .history import History
+from .history import History, is_current
 from .overlay import OverlayConfig, build_overlay, pose_dict, status_dict
 from .replay import FrameResult, Replayer, ReplayState, Scout, ScoutPool
 from .targets import Target, TargetBook
@@ -132,7 +132,7 @@ class Session:
         self.unwatched_since: float | None = time.monotonic()
         # The last frame played to clients (or that would have been, unwatched): what a client
         # joining now must see, even while paused.
-        self._current_frame: tuple[FrameResult, Any | None] | None = None
+        self._current_frame: tuple[FrameResult, Any | None, Any | None] | None = None
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
         self.closers: list[Callable[[], None]] = []  # called when the session closes
@@ -193,21 +193,25 @@ class Session:
             except Exception:  # the structure is a by-product: never stop the replay for it
                 log.exception("engine.structure(), solved_views() or timing() failed")
         state = copy.deepcopy(result.state) if result.state is not None else None
+        # A state left behind its frame (no IMU since) says why in its status; it is no pose
+        # of this frame: no overlay, berth figures, trajectory row or target view from it.
+        pose = state if is_current(state, result.t) else None
         with self.lock:
             if structure is not None:
                 self._structure = structure
             self._frames.append((result.index, result.t, result.image))
             if state is not None:
-                self.history.append(result.t, state)
-                self.alarms.update(state, alerts, self.berth.metrics(state))
-                self.targets.on_frame(state, result.index, result.image, self._structure)
+                self.alarms.update(state, alerts, self.berth.metrics(pose))
+            if pose is not None:
+                self.history.append(result.t, pose)
+                self.targets.on_frame(pose, result.index, result.image, self._structure)
             watched = bool(self._subscribers)
             listeners = list(self.frame_listeners)
             if result.live:
-                self._current_frame = (result, state)
+                self._current_frame = (result, state, pose)
         if result.live and watched:
             try:
-                self._publish(self._frame_message(result, state))
+                self._publish(self._frame_message(result, state, pose))
             except Exception:  # a bad overlay must not stop the replay: log, send none
                 log.exception("frame message of frame %d failed", result.index)
         for listener in listeners:
@@ -272,9 +276,11 @@ class Session:
         for sub in subscribers:
             sub.offer(*message)
 
-    def _frame_message(self, result: FrameResult, state: Any | None) -> tuple[bytes, bytes]:
+    def _frame_message(self, result: FrameResult, state: Any | None, pose: Any | None
+                       ) -> tuple[bytes, bytes]:
         """Header JSON (without its closing brace: the sender appends its send time) and the
-        JPEG of one frame."""
+        JPEG of one frame: the fusion's ``state`` says its status, ``pose`` (the state when it
+        is current at the frame, else None) what is drawn."""
         ok, jpeg = cv2.imencode(".jpg", stream_picture(result.image),
                                 [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         if not ok:
@@ -283,7 +289,7 @@ class Session:
             s = self._structure
             structure = (s.points, s.sigma, s.ids)
             targets = self.targets.inputs()
-            berth = self.berth.world(state)
+            berth = self.berth.world(pose)
             berth_line = self.berth.line
             replay = self.replayer.status()
         header: dict[str, Any] = {
@@ -304,13 +310,13 @@ class Session:
             "alarms": self.alarms.active(),
             "live": _live_brief(self.live_status()),
         }
-        if state is None:
-            header.update(pose=None, status=None, overlay=None)
+        header["status"] = None if state is None else status_dict(state.status)
+        if pose is None:
+            header.update(pose=None, overlay=None)
         else:
-            header["pose"] = pose_dict(state, self.start_gpst)
-            header["status"] = status_dict(state.status)
+            header["pose"] = pose_dict(pose, self.start_gpst)
             header["overlay"] = build_overlay(
-                state, self.rec.calibration.camera, self.rec.hull, self.projector, structure,
+                pose, self.rec.calibration.camera, self.rec.hull, self.projector, structure,
                 targets, berth, self.overlay_config,
                 (None, None) if berth_line is None else (berth_line.sigma_m,
                                                          berth_line.sigma_deg))

@@ -211,8 +211,8 @@ class IntegrityMonitor:
             math.hypot(*(gyro - prev[0])) > cfg.max_rate_step
             or math.hypot(*(accel - prev[1])) > cfg.max_force_step)
         if rate > cfg.max_rate_rad_s or force > cfg.max_specific_force or spike:
-            self.raise_fault("imu-implausible", t, f"IMU sample implausible (|ω| {rate:.2f} "
-                             f"rad/s, |f| {force:.1f} m/s²{', a spike' if spike else ''}): "
+            self.raise_fault("imu-implausible", t, f"IMU sample implausible (|ω| {rate:.3g} "
+                             f"rad/s, |f| {force:.3g} m/s²{', a spike' if spike else ''}): "
                              "dropped")
             if spike:  # compare the next sample with the last good one
                 self._prev_raw = prev
@@ -342,11 +342,12 @@ class IntegrityMonitor:
     def _stream_checks(self, t: float) -> None:
         """Streams that fell silent while others go on."""
         if math.isfinite(self.last_imu) and t - self.last_imu > self.cfg.imu_silent_s:
-            self.raise_fault("imu-silent", t, f"no IMU sample for {t - self.last_imu:.1f} "
-                             "s: no position")
+            # (one message while it lasts: the alarm list keeps the first, the banner the last)
+            self.raise_fault("imu-silent", t, f"no IMU sample for over "
+                             f"{self.cfg.imu_silent_s:g} s: no position")
         if self.frames_seen and t - self.last_frame > self.cfg.video_silent_s:
-            self.raise_fault("video-silent", t, f"no video frame for {t - self.last_frame:.1f}"
-                             " s: no VO")
+            self.raise_fault("video-silent", t, f"no video frame for over "
+                             f"{self.cfg.video_silent_s:g} s: no VO")
 
     def assess(self, t: float, mode: str, position_cov: np.ndarray | None,
                heading_var: float | None) -> Integrity:

@@ -258,8 +258,8 @@ class Fusion:
             phase = "initialising"
         elif carrier.aligning and not len(carrier.integers):
             phase = "aligning"
-        elif carrier.carrier_fresh(ekf.time):
-            phase = "fused"
+        elif carrier.carrier_fresh(ekf.time) and not self.monitor.is_active("imu-silent"):
+            phase = "fused"  # (the EKF's time stands still without the IMU)
         else:
             phase = "degraded"
         vo_status = self.coupling.status

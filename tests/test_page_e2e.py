@@ -388,6 +388,15 @@ def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server:
                       "b.alarms")
         assert alarm["sounding"] and alarm["beeps"] >= 1
         assert pg.locator("#alarms").is_visible()
+        # Half a second on, the fusion's last state is left behind: no stale pose looking
+        # live (overlay, berth and navigation figures) while the page says why.
+        gone = _wait(pg, "!!f && f.t >= 6.6 && f.t < 7.9", 30, "f")
+        assert gone["pose"] is None and gone["overlay"] is None, gone["pose"]
+        assert gone["status"]["phase"] == "degraded"
+        assert gone["status"]["integrity"]["mode"] == "no position"
+        assert "No position" in pg.locator("#untrusted").inner_text()
+        assert pg.locator("#st-phase").inner_text().endswith("degraded")
+        assert pg.locator("#hdg").inner_text() == "–"
         shot(pg, "07_integrity_alarm")
         # the integrity alarm and the fault behind it both sound: one acknowledgement for all
         pg.locator("#alarms li[data-kind=integrity] button").click()
@@ -396,6 +405,11 @@ def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server:
         _wait(pg, "!b.alarms.sounding", 5)
         back = _wait(pg, "!!f && f.t > 8.5 && b.trust.trusted", 40, "f")
         assert back["status"]["integrity"]["mode"] == "fused"
+        # the trajectory has no row from the gap's stale state: times only increase
+        sid = pg.evaluate("() => window.berthing.session.id")
+        track = _get_json(f"{server}/api/sessions/{sid}/trajectory")
+        t = np.array(track["t"])
+        assert np.all(np.diff(t) > 0) and not np.any((t > 6.6) & (t < 8.0)), t[55:90]
         _wait(pg, "!b.alarms.list.some(a => a.kind === 'integrity')", 5)
         shot(pg, "07_integrity_recovered")
     finally:

@@ -92,7 +92,9 @@ export class BirdsEye {
     ctx.fillRect(0, 0, w, h);
     const plan = frame?.overlay?.birdseye;
     if (!plan) {
-      label(ctx, 12, 20, "no position yet", c.planText, "transparent", 14);
+      // a status without a pose: the fusion had one and lost it (no IMU)
+      label(ctx, 12, 20, frame?.status ? "no position" : "no position yet", c.planText,
+        "transparent", 14);
       this.view = null;
       return;
     }

@@ -49,7 +49,7 @@ export class Panel {
     }
     const bow = this._end("bow", berth, trusted ? levels.bow : null);
     const stern = this._end("stern", berth, trusted ? levels.stern : null);
-    this._more(berth);
+    this._more(berth, frame?.status && !pose);
     this.level = [bow, stern].includes("alarm") ? "alarm" : [bow, stern].includes("warning") ? "warning" : null;
     return this.level;
   }
@@ -79,11 +79,11 @@ export class Panel {
     return level || null;
   }
 
-  _more(berth) {
+  _more(berth, lost) {
     const set = (id, html) => { this.el(id).innerHTML = html; };
     if (!berth) {
       for (const id of ["along", "angle", "ttc"]) set(id, "–");
-      this.el("berth-method").textContent = "no line";
+      this.el("berth-method").textContent = lost ? "no position" : "no line";
       return;
     }
     const along = berth.along_berth_mps;

@@ -21,11 +21,13 @@ export function assess(frame) {
   const st = frame?.status;
   const reasons = [];
   const advisories = [];
-  if (!frame?.pose || !st) {
+  if (!st) {
     reasons.push("Initialising — no fused position yet");
     return { trusted: false, reasons, advisories };
   }
   const ig = st.integrity;
+  // a status without a pose: the fusion's last state is behind the frame (no IMU since)
+  if (!frame.pose && !(ig && !ig.trusted)) reasons.push("No position — no fused pose for this frame");
   if (ig && !ig.trusted) {
     const mode = MODE_TEXT[ig.mode] || ig.mode;
     reasons.push(ig.reasons.length ? `${mode} — ${ig.reasons[0]}` : mode);
@@ -73,7 +75,7 @@ export class Status {
   update(frame) {
     const st = frame?.status;
     this.trust = assess(frame);
-    if (!frame?.pose || !st) {
+    if (!st) {
       for (const id of ["compass", "sats", "vo", "scale"]) this._chip(id, "–", "warn");
       this._chip("integrity", "no position", "bad");
       this._chip("phase", "initialising", "bad");
