@@ -47,6 +47,7 @@ from recordings.format import Recording
 log = logging.getLogger(__name__)
 
 MAX_LAG_S = 0.5  # when the engine falls further behind real time, the clock is re-anchored
+VIDEO_LATE_S = 1.0  # the other sensors this far past the next frame's time: the video has ended
 SCOUT_INTERVAL_S = 2.0  # recording s between the scout's engine copies: ~1 s of fast-forward
 SCOUT_MAX_CHECKPOINTS = 48  # ~4 MB each (the real engine); beyond, every other copy goes
 #                             and the interval doubles
@@ -651,7 +652,11 @@ class Replayer:
             self._t = msg.t
             if isinstance(msg, FrameMessage):
                 self._frames += 1
+            frames = self._frames
         if not isinstance(msg, FrameMessage):
+            if (ended := self._video_ended(msg.t, frames)) is not None:
+                self._fail(ended)  # the page would keep its last picture and say all is well
+                loop.target = None
             return
         target = loop.target
         live = target is None or msg.t >= target
@@ -666,6 +671,20 @@ class Replayer:
         self._maybe_checkpoint(engine, msg.t)
         if target is not None and msg.t >= target:
             loop.target = None  # seek done: playing or paused resumes from here
+
+    def _video_ended(self, t: float, frames: int) -> str | None:
+        """Why the replay cannot go on at ``t`` with ``frames`` frames shown: the video ended
+        (cut short, or shorter than the other sensors) more than ``VIDEO_LATE_S`` ago."""
+        times, start = self.rec.frame_times, self.rec.manifest.start_gpst
+        if frames < len(times) and t > times[frames] + VIDEO_LATE_S:
+            last = times[frames - 1] - start if frames else 0.0
+            return (f"the video ends at frame {frames} ({last:.1f} s) "
+                    f"though the frame times list {len(times)} frames: no picture after it, "
+                    "the replay stops here")
+        if frames == len(times) and len(times) and t > times[-1] + VIDEO_LATE_S:
+            return (f"the recording's video ends at {times[-1] - start:.1f} s, its other "
+                    "sensors go on: no picture after it, the replay stops here")
+        return None
 
     def _pace(self, t: float, speed: float, anchor: tuple[float, float] | None
               ) -> tuple[float, float] | None:

@@ -8,6 +8,7 @@ loopback. The engine is ``ReferenceEngine`` (fast, deterministic) or doubles of 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import json
 import threading
@@ -189,6 +190,32 @@ def test_play_at_the_end_keeps_the_history_and_says_how_to_replay(client: httpx.
                        json={"action": "seek", "time": 0}).status_code == 200
     assert client.post(f"/api/sessions/{sid}/control", json={"action": "play"}).status_code == 200
     wait_status(client, sid, lambda s: s["state"] == "ended", timeout=30)
+
+
+def test_a_video_cut_short_stops_the_replay_saying_so(sim_recording: Path, tmp_path: Path):
+    """The video of a damaged copy ends at 7 s of 12 (the IMU and GNSS go on): the replay does
+    not run on without pictures while the page keeps its last one and the state it had; it
+    stops there in ``error`` with why, its poses kept, and seeking back replays it."""
+    from recordings.faults import inject
+
+    cut = load(inject(sim_recording, "video-end:7", tmp_path / "vend"))
+    with contextlib.ExitStack() as stack:
+        live = stack.enter_context(contextlib.contextmanager(serve)(Settings(
+            default_recording=tmp_path / "vend", viser_port=None,
+            engine_factory=lambda cal, nav, opts: ReferenceEngine(cut)), cut))
+        c = stack.enter_context(httpx.Client(base_url=live.url, timeout=30))
+        r = c.post("/api/sessions", json={"recording": "vend", "speed": "max"})
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        status = wait_status(c, sid, lambda s: s["state"] in ("error", "ended"))
+        assert status["state"] == "error", status
+        assert "video ends at frame 70 (6.9 s)" in status["error"], status["error"]
+        assert status["frames_processed"] == 70
+        track = c.get(f"/api/sessions/{sid}/trajectory").json()
+        assert track["count"] == 70 and max(track["t"]) < 7.0
+        assert c.post(f"/api/sessions/{sid}/control",
+                      json={"action": "seek", "time": 2}).status_code == 200
+        wait_status(c, sid, lambda s: s["state"] == "error" and s["frames_processed"] == 70)
 
 
 # --------------------------------------------------------------- numbers and contract
