@@ -463,6 +463,8 @@ class BerthLineRequest(Strict):
             raise ValueError("give exactly one of 'image_points', 'ned' and 'from_bow'")
         if self.snap is not None and self.ned is None:
             raise ValueError("'snap' goes with 'ned' only")
+        if "frame_time" in self.model_fields_set and self.image_points is None:
+            raise ValueError("'frame_time' goes with 'image_points' only (the pixels' frame)")
         return self
 
 

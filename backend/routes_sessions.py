@@ -176,15 +176,10 @@ def acknowledge_alarm(session: SessionDep,
 
 
 @router.websocket("/{session_id}/stream")
-async def stream(websocket: WebSocket, session_id: str,
-                 ack: Annotated[bool, Query(description="the client acknowledges frames")] = False,
-                 window: Annotated[int, Query(ge=1, le=16)] = 2,
-                 token: Annotated[str | None, Query(description="access token, when the "
-                                                    "server requires one (backend.access)")]
-                 = None) -> None:
-    """One JSON header (text) + one JPEG (binary) per video frame; see ``backend.stream``."""
-    await serve_stream(websocket, websocket.app.state.manager, session_id,
-                       window if ack else None)
+async def stream(websocket: WebSocket, session_id: str) -> None:
+    """One JSON header (text) + one JPEG (binary) per video frame; see ``backend.stream``
+    (its query, read there: a bad one is told by name, not refused bare at the handshake)."""
+    await serve_stream(websocket, websocket.app.state.manager, session_id)
 
 
 stream_router = APIRouter(prefix="/api/stream", tags=["sessions"])

@@ -14,7 +14,11 @@ Protocol (``/api/sessions/{id}/stream``), server → client:
   time of sending), both Unix seconds.
   ``pose``/``status``/``overlay`` are null until the engine has a solution.
 * **text** ``{"type": "error" | "closed", "detail": ...}`` before the server closes the socket
-  with code 4404 (unknown or deleted session: do not reconnect).
+  with code 4404 (unknown or deleted session: do not reconnect) or 4422 (a query parameter
+  unknown or out of range, named in ``detail``).
+
+Query: ``ack`` (1/true/yes/on or 0/false/no/off), ``window`` (1..16) and ``token``
+(``backend.access``).
 
 Binary JPEG + JSON header rather than base64-in-JSON: a third smaller, no encode/decode cost,
 and the browser can hand the blob straight to an ``<img>``/``createImageBitmap``.
@@ -35,6 +39,7 @@ import asyncio
 import contextlib
 import json
 import time
+from collections.abc import Mapping
 
 from fastapi import WebSocket
 
@@ -139,21 +144,49 @@ async def _receive(websocket: WebSocket, slot: LatestSlot) -> None:
             data = json.loads(text)
             if data.get("type") == "ack":
                 slot.ack(int(data["seq"]))
-        except (ValueError, TypeError, KeyError, AttributeError):
-            continue  # a malformed message must not end the stream
+        except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
+            continue  # a malformed message (seq 1e400: int(inf)) must not end the stream
 
 
-async def serve_stream(websocket: WebSocket, manager: SessionManager, session_id: str,
-                       window: int | None = None) -> None:
-    """Serve one client; ``window``: frames in flight for an acknowledging client (None: the
-    client does not acknowledge)."""
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+WINDOW_MAX = 16
+
+
+def stream_query(query: Mapping[str, str]) -> int | None:
+    """The stream's query: frames in flight for an acknowledging client (None: the client
+    does not acknowledge). ValueError naming the parameter when it is unknown or bad."""
+    unknown = sorted(set(query) - {"ack", "window", "token"})
+    if unknown:
+        raise ValueError(f"unknown query parameter {unknown[0]!r} (the stream takes: ack, "
+                         "token, window)")
+    ack = query.get("ack", "0").lower()
+    if ack not in _TRUE + _FALSE:
+        raise ValueError(f"ack: {query['ack']!r} is not a boolean (1, true, yes, on or 0, "
+                         "false, no, off)")
+    text = query.get("window", "2")
+    if not text.isdigit() or not 1 <= int(text) <= WINDOW_MAX:
+        raise ValueError(f"window: {text!r} is not a whole number of frames in 1..{WINDOW_MAX}")
+    return int(text) if ack in _TRUE else None
+
+
+async def _refuse(websocket: WebSocket, status: int, detail: str, code: int, reason: str
+                  ) -> None:
+    await websocket.send_text(json.dumps({"type": "error", "status": status, "detail": detail}))
+    await websocket.close(code=code, reason=reason)
+
+
+async def serve_stream(websocket: WebSocket, manager: SessionManager, session_id: str) -> None:
+    """Serve one client (its query: ``stream_query``)."""
     await websocket.accept()
+    try:
+        window = stream_query(websocket.query_params)
+    except ValueError as exc:
+        await _refuse(websocket, 422, str(exc), 4422, "bad query")
+        return
     try:
         session: Session = manager.get(session_id)
     except ApiError as exc:
-        await websocket.send_text(json.dumps({"type": "error", "status": exc.status,
-                                              "detail": exc.message}))
-        await websocket.close(code=4404, reason="unknown session")
+        await _refuse(websocket, exc.status, exc.message, 4404, "unknown session")
         return
     slot = LatestSlot(asyncio.get_running_loop(), window)
     session.subscribe(slot)

@@ -264,6 +264,12 @@ def test_non_finite_and_absurd_numbers_are_422_naming_the_field(client: httpx.Cl
         body = _is_error_body(r)
         assert field in [e["field"] for e in body["errors"]], (path, raw, body)
         assert field in body["detail"]
+    # a frame time that would be ignored (the line is not from pixels): said, not dropped
+    for raw in ('{"ned": [[30, -5], [30, 5]], "frame_time": 3}',
+                '{"from_bow": {"distance_m": 5, "bearing_deg": 0}, "frame_time": 3}'):
+        r = client.put(f"{base}/berth-line", content=raw,
+                       headers={"content-type": "application/json"})
+        assert r.status_code == 422 and "'frame_time' goes with" in _is_error_body(r)["detail"]
     # a body that cannot even be decoded: 400 in the same schema
     r = client.post("/api/sessions", content=b'{"recording": "\xff"}',
                     headers={"content-type": "application/json"})
@@ -403,3 +409,56 @@ def test_a_deleted_sessions_stream_is_told_and_closed(server: Live, client: http
     assert statuses[-1] == {"type": "closed", "detail": "the session was deleted"}
     time.sleep(0.1)
     assert client.get(f"/api/sessions/{sid}").status_code == 404
+
+
+def test_malformed_acknowledgements_do_not_end_the_stream(server: Live, client: httpx.Client):
+    """An acknowledging client that sends garbage (a sequence number no integer can hold,
+    text that is not JSON, JSON that is not an object) keeps its stream."""
+    sid = _create(client, speed=1.0)
+
+    async def garble() -> int:
+        async with websockets.connect(f"{server.ws}/api/sessions/{sid}/stream?ack=1",
+                                      max_size=None) as ws:
+            frames = 0
+            async with asyncio.timeout(30):
+                while frames < 6:
+                    message = await ws.recv()
+                    if isinstance(message, bytes) or json.loads(message)["type"] != "frame":
+                        continue
+                    await ws.recv()  # its JPEG
+                    frames += 1
+                    for bad in ('{"type": "ack", "seq": 1e400}', '{"type": "ack", "seq": NaN}',
+                                "not json", "[1, 2]", '{"type": "ack", "seq": "x"}'):
+                        await ws.send(bad)
+                    header = json.loads(message)
+                    await ws.send(json.dumps({"type": "ack", "seq": header["seq"]}))
+        return frames
+
+    assert asyncio.run(garble()) == 6
+    assert client.delete(f"/api/sessions/{sid}").status_code == 204
+
+
+def test_a_bad_stream_query_is_told_by_name(server: Live, client: httpx.Client):
+    """The stream's query is validated after the handshake, so the client reads which
+    parameter is wrong (code 4422) rather than a bare refusal; a good one streams."""
+    sid = _create(client, paused=True)
+
+    async def connect(query: str) -> tuple[dict, int | None]:
+        async with websockets.connect(f"{server.ws}/api/sessions/{sid}/stream{query}") as ws:
+            first = json.loads(await ws.recv())
+            code = None
+            if first["type"] == "error":
+                with pytest.raises(websockets.ConnectionClosed) as closed:
+                    await ws.recv()
+                code = closed.value.rcvd.code
+        return first, code
+
+    for query, named in (("?window=0", "window"), ("?ack=1&window=abc", "window"),
+                         ("?ack=maybe", "ack"), ("?bogus=1", "'bogus'"),
+                         ("?ack=1&window=17", "1..16")):
+        first, code = asyncio.run(connect(query))
+        assert code == 4422 and first["status"] == 422 and named in first["detail"], first
+    for query in ("", "?ack=1", "?ack=true&window=16", "?ack=0"):
+        first, code = asyncio.run(connect(query))
+        assert code is None and first["type"] == "status", (query, first)
+    assert client.delete(f"/api/sessions/{sid}").status_code == 204
