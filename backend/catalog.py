@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from recordings.format import Recording, RecordingError, load, summary
+from recordings.format import Recording, RecordingError, check_manifest, load, summary
 
 from . import models
 from .errors import BadRequest, NotFound, Unprocessable
@@ -41,15 +41,26 @@ class RecordingCatalog:
         self._cache_size = cache_size
         self._lock = threading.Lock()
         self._loading: dict[Path, threading.Lock] = {}
+        # why a recording could not be loaded, by path, with its files' latest change then
+        self._failed: dict[Path, tuple[float, str]] = {}
 
-    @staticmethod
-    def _read_manifest(path: Path) -> tuple[dict[str, Any] | None, str | None]:
+    def _read_manifest(self, path: Path) -> tuple[dict[str, Any] | None, str | None]:
+        """The manifest's JSON, and why the recording cannot be opened: what the manifest
+        says without reading the data, else what the last attempt to load it said (until
+        its files change)."""
         try:
             data = json.loads((path / "manifest.json").read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             return None, f"manifest.json cannot be read: {exc}"
         if not isinstance(data, dict):
             return None, "manifest.json is not a JSON object"
+        try:
+            check_manifest(path)
+        except RecordingError as exc:
+            return data, str(exc)
+        failed = self._failed.get(path.resolve())
+        if failed is not None and failed[0] == _last_change(path):
+            return data, failed[1]
         return data, None
 
     def entries(self) -> dict[str, RecordingEntry]:
@@ -108,8 +119,10 @@ class RecordingCatalog:
             try:
                 rec = load(entry.path)
             except RecordingError as exc:
+                self._failed[entry.path] = (_last_change(entry.path), str(exc))
                 raise Unprocessable(f"recording {name!r} cannot be read: {exc}") from None
             with self._lock:
+                self._failed.pop(entry.path, None)
                 self._cache[entry.path] = rec
                 while len(self._cache) > self._cache_size:
                     self._cache.popitem(last=False)
@@ -119,3 +132,11 @@ class RecordingCatalog:
         info = summary(self.load(name))
         info.pop("path", None)  # the server's file layout is none of the client's business
         return info
+
+
+def _last_change(path: Path) -> float:
+    """The latest modification time of the recording directory's files."""
+    try:
+        return max((f.stat().st_mtime for f in path.iterdir()), default=0.0)
+    except OSError:
+        return 0.0

@@ -860,12 +860,10 @@ def _load_gnss(root: Path, manifest: Manifest, manifest_path: Path, calibration:
 # ------------------------------------------------------------------------------- load
 
 
-def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
-    """Read and validate a recording directory (or its manifest.json).
-
-    With ``load_gnss=False`` the RINEX files are only checked to exist (fast, e.g. for the
-    video alone): ``gnss`` and ``gnss_headers`` are empty and ``nav`` has no ephemerides.
-    """
+def check_manifest(path: str | Path) -> tuple[Path, Manifest]:
+    """The recording directory at ``path`` (or its manifest.json) and its manifest, checked
+    as far as that goes without reading the data: the manifest valid, every file it names
+    there (what a listing can afford; ``load`` reads and checks the rest)."""
     root = Path(path)
     if root.is_file() and root.name == MANIFEST_FILE:
         root = root.parent
@@ -875,8 +873,18 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
     if not manifest_path.is_file():
         raise RecordingError(f"{manifest_path}: missing manifest (not a recording directory?)")
     manifest = _parse_manifest(manifest_path)
-    files = manifest.files
-    _check_files_exist(root, manifest_path, files)
+    _check_files_exist(root, manifest_path, manifest.files)
+    return root, manifest
+
+
+def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
+    """Read and validate a recording directory (or its manifest.json).
+
+    With ``load_gnss=False`` the RINEX files are only checked to exist (fast, e.g. for the
+    video alone): ``gnss`` and ``gnss_headers`` are empty and ``nav`` has no ephemerides.
+    """
+    root, manifest = check_manifest(path)
+    manifest_path, files = root / MANIFEST_FILE, manifest.files
 
     calibration = _parse_calibration(root / files["calibration"])
     hull = _parse_hull(root / files["hull"])

@@ -63,6 +63,16 @@ def recordings_dir(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory
     manifest = json.loads((sim_recording / "manifest.json").read_text())
     manifest["files"].update(reference=None, scene_points=None)
     (bare / "manifest.json").write_text(json.dumps(manifest))
+    # damaged copies: the hull file gone (seen from the manifest), an IMU value not a number
+    # (seen only when the data are read)
+    for name, lost in (("no-hull", "hull.json"), ("bad-imu", "imu.csv")):
+        (d / name).mkdir()
+        for item in sim_recording.iterdir():
+            if item.name != lost:
+                (d / name / item.name).symlink_to(item, target_is_directory=item.is_dir())
+    lines = (sim_recording / "imu.csv").read_text().splitlines()
+    lines[50] = lines[50].split(",", 1)[0] + ",nan" + lines[50].split(",", 1)[1][1:]
+    (d / "bad-imu" / "imu.csv").write_text("\n".join(lines) + "\n")
     return d
 
 
@@ -116,6 +126,13 @@ def test_recordings_listing_and_summary(ref_live: Live):
         assert names[RECORDING]["default"] and names[RECORDING]["has_reference"]
         assert names[RECORDING]["duration_s"] == 12.0
         assert names["broken"]["problem"].startswith("manifest.json cannot be read")
+        assert "files.hull names 'hull.json', which does not exist" in names["no-hull"]["problem"]
+        assert names[RECORDING]["problem"] is None and names["bad-imu"]["problem"] is None
+        # a problem only reading finds is listed once a client has met it
+        r = client.get("/api/recordings/bad-imu")
+        assert r.status_code == 422 and "imu.csv" in r.json()["detail"]
+        names = {r["name"]: r for r in client.get("/api/recordings").json()["recordings"]}
+        assert "imu.csv" in names["bad-imu"]["problem"], names["bad-imu"]
         assert "not-a-recording" not in names
         info = client.get(f"/api/recordings/{RECORDING}").json()
         assert info["video"]["frame_times"] == 121 and info["reference"]["present"]
