@@ -329,7 +329,7 @@ class TargetTracker:
         self.uv = predicted
         return TrackResult(uv=None, score=score, status="lost", particles=self.particles.copy(),
                            uv_match=seen_at, flow=flow, reason=_LOOK_ALIKES if look_alikes
-                           else "lost: waiting for the template to reappear")
+                           else "waiting for the template to reappear")
 
     def _find_again(self, gray: np.ndarray, centre: np.ndarray, radius: int, need: float,
                     flow: np.ndarray | None = None

@@ -80,6 +80,9 @@ DEFAULTS: dict[str, tuple[float, ...]] = {
     "video-black": (40.0, 3.0), "video-blinded": (40.0, 3.0),
 }
 FAULTS = tuple(DEFAULTS)
+# The parameter that is a time after the recording start (where the damage begins), by kind
+TIME_PARAM = {k: 0 for k in DEFAULTS if k not in ("receiver-missing", "iono-storm", "half-sky",
+                                                  "video-zeroed")} | {"receiver-silent": 1}
 
 
 def parse_fault(text: str) -> Fault:
@@ -109,6 +112,14 @@ def inject(source: str | Path, fault: str | Fault, out: str | Path) -> Path:
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"output directory {out} exists and is not empty")
+    if out.resolve().is_relative_to(rec.path.resolve()):
+        raise ValueError(f"output directory {out} is inside the recording {rec.path}: the copy "
+                         "would copy itself")
+    duration = float(rec.manifest.duration_s)
+    if f.kind in TIME_PARAM and f.params[TIME_PARAM[f.kind]] >= duration:
+        raise ValueError(f"fault {f.name}: it starts at {f.params[TIME_PARAM[f.kind]]:g} s, "
+                         f"not before the recording's end ({duration:g} s): nothing would be "
+                         "damaged")
     _link_copy(rec.path, out)
     _INJECT[f.kind](rec, out, f.params)
     manifest = json.loads((out / "manifest.json").read_text())

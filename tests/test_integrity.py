@@ -142,6 +142,13 @@ def test_injected_damage_is_what_it_says(sim_recording: Path, tmp_path: Path) ->
     black = load(inject(sim_recording, "video-black:6:1", tmp_path / "black"))
     frames = {k: img for k, _t, img in black.frames() if 58 <= k <= 61}
     assert frames[61].max() == 0 and frames[59].mean() > 20
+    # damage that would miss the recording, or a copy into itself: refused, nothing written
+    for fault, out, msg in (("imu-gap:12:2", tmp_path / "late", "not before the recording's end"),
+                            ("receiver-silent:2:30", tmp_path / "late", "starts at 30 s"),
+                            ("imu-gap:6:1", sim_recording / "copy", "inside the recording")):
+        with pytest.raises(ValueError, match=msg):
+            inject(sim_recording, fault, out)
+        assert not out.exists()
     end = load(inject(sim_recording, "imu-end:7", tmp_path / "end"))
     assert any("imu.csv ends at 7.0 s" in w for w in end.warnings)
     assert load(inject(sim_recording, "video-end:7", tmp_path / "vend")).warnings
