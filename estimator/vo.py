@@ -45,8 +45,10 @@ When tracking is lost (too few PnP inliers) the map is dropped and a new world i
 
 from __future__ import annotations
 
+import os
 import time as _time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -59,6 +61,17 @@ from estimator.frames import skew
 from estimator.records import CameraCalibration, mean_focal
 
 STAGES = ("detect", "track", "pose", "triangulate", "ba")
+_WORKER: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _worker() -> ThreadPoolExecutor:
+    """One thread for the OpenCV calls that overlap the VO's own numpy work. Made on first
+    use in each process (a VO is pickled by the campaign and deep-copied by the evaluation,
+    and a forked child has none of its parent's threads)."""
+    global _WORKER
+    if _WORKER is None or _WORKER[0] != os.getpid():
+        _WORKER = (os.getpid(), ThreadPoolExecutor(1, thread_name_prefix="vo-lk"))
+    return _WORKER[1]
 
 
 @dataclass
@@ -712,9 +725,10 @@ class VisualOdometry:
         t_start = _time.perf_counter()
         gray, blurred = prepared if prepared is not None else self.prepare(image_bgr)
         if len(self._tracks) and self._prev_gray is not None:
-            uv, ok = self._track_lk(self._prev_gray, gray)
+            uv, ok, backward = self._track_lk(self._prev_gray, gray)
             if self.params.template_check:
                 uv, ok = self._align_on_templates(blurred, uv, ok)
+            ok &= backward.result()
             self._set_tracks(np.flatnonzero(ok), uv[ok])
         else:
             self._set_tracks(np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
@@ -776,18 +790,28 @@ class VisualOdometry:
         pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
         return cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
 
-    def _track_lk(self, prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _track_lk(self, prev: np.ndarray, cur: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, Future]:
+        """LK of the tracks from ``prev`` to ``cur``: the found pixels, whether each was found
+        inside the image, and the forward–backward check still running in a worker thread.
+        OpenCV releases the GIL, so the check overlaps the template alignment (3 ms of a
+        frame's 24): the alignment takes the rows the check will cut too, and every row is
+        computed on its own, so the outcome does not depend on the overlap."""
         p0 = self._tracks.uv.reshape(-1, 1, 2).astype(np.float32)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **self._lk)
-        # The backward pass tracks the found points back: a mistrack (occlusion, water glint,
-        # texture-less patch such as a black frame) rarely returns to where it started.
-        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **self._lk)
-        fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+
+        def backward() -> np.ndarray:
+            # A mistrack (occlusion, water glint, texture-less patch such as a black frame)
+            # rarely returns to where it started.
+            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **self._lk)
+            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+            return (st2.ravel() == 1) & (fb < self.params.fb_threshold_px)
+
+        check = _worker().submit(backward)
         uv = p1.reshape(-1, 2)
         w, h = self._size
         inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.params.fb_threshold_px) & inside
-        return uv, ok
+        return uv, (st1.ravel() == 1) & inside, check
 
     def _align_on_templates(self, image: np.ndarray, uv: np.ndarray, ok: np.ndarray
                             ) -> tuple[np.ndarray, np.ndarray]:

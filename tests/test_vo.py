@@ -508,3 +508,31 @@ def test_template_check_cuts_tracks_on_changing_water():
     assert quay_a > 0.8 * n_quay  # the rigid texture keeps its tracks
     assert water_c > 0.2 * n_water  # chained LK keeps following the water ...
     assert water_a < 0.25 * water_c  # ... the template check does not
+
+
+def _track_in_child(frames: list[np.ndarray], out) -> None:
+    vo = VisualOdometry(CAMERA)
+    for k, f in enumerate(frames):
+        o = vo.process(0.1 * k, f)
+    out.put(o.n_tracked)
+
+
+def test_a_forked_process_tracks_with_its_own_worker_thread():
+    """The forward–backward check runs in a worker thread made on first use. A process forked
+    after the parent used it (a campaign's workers, the yardstick's jobs) has none of the
+    parent's threads: it must make its own rather than wait on a dead one for ever."""
+    import multiprocessing
+
+    frames = zoom_texture_frames(4, 0.005, 6)
+    parent = VisualOdometry(CAMERA)
+    for k, f in enumerate(frames):
+        parent.process(0.1 * k, f)
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_track_in_child, args=(frames, out))
+    child.start()
+    child.join(60)
+    if child.is_alive():
+        child.kill()
+        pytest.fail("the forked VO never finished a frame")
+    assert child.exitcode == 0 and out.get(timeout=5) == parent._tracks.id.size
