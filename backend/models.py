@@ -437,9 +437,11 @@ class BerthLineRequest(Strict):
         {"required": ["image_points"], "not": {"anyOf": [
             {"required": ["ned"]}, {"required": ["from_bow"]}, {"required": ["snap"]}]}},
         {"required": ["ned"], "not": {"anyOf": [
-            {"required": ["image_points"]}, {"required": ["from_bow"]}]}},
+            {"required": ["image_points"]}, {"required": ["from_bow"]},
+            {"required": ["frame_time"]}]}},
         {"required": ["from_bow"], "not": {"anyOf": [
-            {"required": ["image_points"]}, {"required": ["ned"]}, {"required": ["snap"]}]}}]})
+            {"required": ["image_points"]}, {"required": ["ned"]}, {"required": ["snap"]},
+            {"required": ["frame_time"]}]}}]})
 
     # not nullable: absent means absent (defaults are not validated)
     image_points: Annotated[list[PixelPoint], Field(min_length=2, max_length=2)] = Field(
