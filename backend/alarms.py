@@ -20,6 +20,7 @@ it is active) and clears by itself when its cause has gone.
 from __future__ import annotations
 
 import threading
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,6 +45,7 @@ DEFAULT_APPROACH_LIMITS = (
     ApproachLimit(50.0, 80.0, 120.0),
 )
 CLEAR_FRACTION = 0.9  # an approach alarm clears below this fraction of its limit (no chatter)
+HISTORY_MAX = 1000  # alarms a session lists (a live one runs for hours)
 SEVERITY_RANK = {"caution": 0, "warning": 1, "alarm": 2}
 
 
@@ -79,7 +81,8 @@ class AlarmBook:
     def __init__(self, start_gpst: float) -> None:
         self.start_gpst = start_gpst
         self._lock = threading.Lock()
-        self._alarms: dict[str, AlarmEntry] = {}
+        self._alarms: dict[str, AlarmEntry] = {}  # the latest of each kind
+        self._history: deque[AlarmEntry] = deque(maxlen=HISTORY_MAX)  # raised, in order
         self._counter = 0
         self._was_trusted = False
         self._seen_alerts = 0
@@ -133,10 +136,12 @@ class AlarmBook:
         else:
             self._clear(kind)
             return
+        # held by the hysteresis below its limit: say so, or the figures contradict it
+        held = "" if closing > limit else f", held until below {CLEAR_FRACTION * limit:.0f}"
         self._raise(kind, severity, t,
                     f"{end.capitalize()} closing the berth at {closing:.0f} cm/s, "
                     f"{_distance_text(distance)} off (limit {limit:g} cm/s within "
-                    f"{row.within_m:g} m)")
+                    f"{row.within_m:g} m{held})")
 
     def set_approach_limits(self, limits: list[ApproachLimit]) -> None:
         with self._lock:
@@ -149,8 +154,12 @@ class AlarmBook:
             # still the same alarm (or eased to a lower level): keep its acknowledgement
             current.message, current.severity = message, severity
             return
+        if current is not None:
+            current.active = False  # a rise to a higher level: the new alarm replaces it
         self._counter += 1
-        self._alarms[kind] = AlarmEntry(f"A{self._counter}", kind, severity, message, t)
+        entry = AlarmEntry(f"A{self._counter}", kind, severity, message, t)
+        self._alarms[kind] = entry
+        self._history.append(entry)
 
     def _clear(self, kind: str) -> None:
         if kind in self._alarms:
@@ -160,6 +169,7 @@ class AlarmBook:
         """The replay went back: the alarms are those of the new run."""
         with self._lock:
             self._alarms.clear()
+            self._history.clear()
             self._was_trusted = False
             self._seen_alerts = 0
 
@@ -168,13 +178,15 @@ class AlarmBook:
             return [a.as_dict() for a in self._alarms.values() if a.active]
 
     def all(self) -> list[dict[str, Any]]:
+        """The alarms raised in this run (the last ``HISTORY_MAX``), in order: a cleared one
+        keeps its last message."""
         with self._lock:
-            return [a.as_dict() for a in self._alarms.values()]
+            return [a.as_dict() for a in self._history]
 
     def acknowledge(self, alarm_id: str) -> dict[str, Any] | None:
         """Acknowledge an alarm by id; None when there is no such alarm."""
         with self._lock:
-            for a in self._alarms.values():
+            for a in self._history:
                 if a.id == alarm_id:
                     a.acknowledged = True
                     return a.as_dict()

@@ -270,13 +270,20 @@ def test_approach_alarms_depend_on_the_distance_amber_then_red():
     again = _approach(book)["approach-bow"]
     assert again["severity"] == "alarm" and not again["acknowledged"]
     assert again["id"] != eased["id"]
-    # hysteresis: just under the limit it holds, well under it clears
+    # hysteresis: just under the limit it holds (and says so), well under it clears
     state, m = _closing(7.9, 0.19)
     book.update(state, [], m)
-    assert _approach(book)["approach-bow"]["severity"] == "warning"
+    held = _approach(book)["approach-bow"]
+    assert held["severity"] == "warning"
+    assert "19 cm/s" in held["message"] and "held until below 18" in held["message"]
     state, m = _closing(7.8, 0.10)
     book.update(state, [], m)
     assert _approach(book) == {}
+    # the history keeps every alarm of the run, the replaced and cleared ones too
+    bow = [a for a in book.all() if a["kind"] == "approach-bow"]
+    assert [a["id"] for a in bow] == [alarms["approach-bow"]["id"], again["id"]]
+    assert [a["severity"] for a in bow] == ["warning", "warning"]  # each at its last level
+    assert not any(a["active"] for a in bow) and "50 cm/s" not in bow[1]["message"]
     # no berth line, or an untrusted pose: no approach alarm
     state, m = _closing(5.0, 0.6)
     book.update(state, [], None)
