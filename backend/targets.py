@@ -12,9 +12,10 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
-from engine.camera import Projector, camera_pose
+from engine.camera import CameraPose, Projector, camera_pose
 from engine.targets import (
     Designation,
     DesignationError,
@@ -90,6 +91,9 @@ class TargetBook:
             raise Unprocessable(f"pixel ({u:g}, {v:g}) is outside the {p.width}x{p.height} "
                                 "image")
         view = camera_view(state, self.rec.calibration.camera)
+        if water_down_m is not None and self.on_own_hull(state, view, u, v, water_down_m):
+            raise Unprocessable(f"pixel ({u:g}, {v:g}) is on the ship herself (her deck or "
+                                "side in view): nothing there to measure")
         try:
             des = designate(p, view, u, v, structure, water_down_m)
         except DesignationError as exc:
@@ -108,6 +112,29 @@ class TargetBook:
             self._targets[target.id] = target
             self._track(target, now)
         return target
+
+    def on_own_hull(self, state: Any, view: Any, u: float, v: float, water_down_m: float
+                    ) -> bool:
+        """Whether pixel (u, v) shows the ship herself: its ray, from the camera down to the
+        water, passes through the hull (the outline from the waterline up to the deck,
+        ``Hull.freeboard_m``; False when the recording does not give it)."""
+        freeboard = self.rec.hull.freeboard_m
+        pose = CameraPose(view.C_level_to_camera, view.position_ned)
+        ray = self.projector.pixel_ray(pose, u, v)
+        if freeboard is None or ray[2] <= 1e-6:
+            return False
+        deck_down = water_down_m - freeboard
+        # from where the ray is at deck height (or the camera, if below it) to the water
+        start = max(0.0, (deck_down - pose.position_ned[2]) / ray[2])
+        end = (water_down_m - pose.position_ned[2]) / ray[2]
+        if end <= start:
+            return False
+        outline = hull_outline_ne(state, self.rec.hull).astype(np.float32)
+        for s in np.linspace(start, end, 12):
+            north, east = pose.position_ned[:2] + s * ray[:2]
+            if cv2.pointPolygonTest(outline, (float(north), float(east)), False) >= 0:
+                return True
+        return False
 
     def _start(self, target: Target, image: np.ndarray, view: Any, index: int,
                earlier: list[tuple[float, np.ndarray]], structure: Structure) -> None:

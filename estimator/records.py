@@ -176,6 +176,9 @@ class Hull:
     # the standalone fix the carrier phase's geometry is computed at.
     sea_surface_height_m: float | None = None
     sea_surface_sigma_m: float = 1.0
+    # Height of the deck above the waterline, when known: a pixel whose ray meets the hull
+    # (this prism over the outline) shows the ship herself, not something to measure.
+    freeboard_m: float | None = None
 
     @property
     def sea_surface(self) -> tuple[float, float] | None:

@@ -587,9 +587,14 @@ def _parse_hull(path: Path) -> Hull:
     sea_sigma = _number(path, data.get("sea_surface_sigma_m", 1.0), "sea_surface_sigma_m")
     if sea_sigma <= 0:
         raise RecordingError(f"{path}: sea_surface_sigma_m must be positive, got {sea_sigma}")
+    freeboard = data.get("freeboard_m")
+    freeboard = None if freeboard is None else _number(path, freeboard, "freeboard_m")
+    if freeboard is not None and not 0.0 < freeboard <= 40.0:
+        raise RecordingError(f"{path}: freeboard_m {freeboard} is not a deck height above the "
+                             "waterline (0 … 40 m)")
     return Hull(outline_body=outline, length=length, beam=beam, berth_line_ned=berth_line,
                 body_origin_height_m=height, sea_surface_height_m=sea,
-                sea_surface_sigma_m=sea_sigma)
+                sea_surface_sigma_m=sea_sigma, freeboard_m=freeboard)
 
 
 # -------------------------------------------------------------------------------- CSV
@@ -1198,6 +1203,7 @@ def write_hull(directory: str | Path, hull: Hull) -> Path:
         "body_origin_height_m": hull.body_origin_height_m,
         "sea_surface_height_m": hull.sea_surface_height_m,
         "sea_surface_sigma_m": float(hull.sea_surface_sigma_m),
+        "freeboard_m": hull.freeboard_m,
     }
     return _write_json(Path(directory) / HULL_FILE, data)
 

@@ -239,7 +239,10 @@ def test_designate_targets_and_berth_line(live: Live, replayed: dict):
         # tracked back through the frames before the click and triangulated at once in the
         # views the structure window solved (the real engine's)
         assert quay["views"] >= 5, quay  # 9-40 on the seeds tried: refined, not the click alone
-        water = client.post(f"{base}/targets", json={"u": 480, "v": 590}).json()
+        # the bottom middle of the picture is the boat's own foredeck: nothing to measure
+        deck = client.post(f"{base}/targets", json={"u": 480, "v": 590})
+        assert deck.status_code == 422 and "on the ship herself" in deck.json()["detail"]
+        water = client.post(f"{base}/targets", json={"u": 150, "v": 570}).json()
         assert water["method"] == "water-plane"
         plane = last["overlay"]["video"]["grid"]["plane_down_m"]
         assert water["position_ned"][2] == pytest.approx(plane, abs=1e-4)
@@ -434,7 +437,7 @@ def test_pause_seek_and_delete(live: Live, replayed: dict):
                                                  lambda f, s: len(f) >= 2, timeout=15))
             await asyncio.sleep(0.5)
             r = await asyncio.to_thread(client.post, f"{base}/targets",
-                                        json={"u": 480.0, "v": 560.0})  # on the water
+                                        json={"u": 150.0, "v": 570.0})  # on the water
             assert r.status_code == 201, r.text
             return (await watch)[0]
 

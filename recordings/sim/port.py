@@ -984,7 +984,7 @@ def _own_small_boat(b: Builder, sc: Scenario) -> None:
     outline = [tuple(q) for q in np.asarray(sc.hull_outline()) - sc.motion_centre_body]
     L, B = sc.hull_length_m, sc.hull_beam_m
     waterline = -sc.reference_point_down_m
-    deck = waterline - 0.85
+    deck = waterline - sc.freeboard_m
     c = np.array([*np.asarray(sc.motion_centre_body, float), 0.0])
     fwd, right = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
 
@@ -1486,7 +1486,7 @@ def _own_large_ship(b: Builder, sc: Scenario) -> None:
     outline = [tuple(q) for q in np.asarray(sc.hull_outline()) - mc]
     L, B = sc.hull_length_m, sc.hull_beam_m
     waterline = -sc.reference_point_down_m
-    deck = waterline - 11.0
+    deck = waterline - sc.freeboard_m
     c = np.array([*mc, 0.0])
     fwd, right = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
     hull_col = [(40, 40, 130), (50, 50, 50), (90, 60, 30)][rng.integers(3)]

@@ -45,6 +45,7 @@ class Scenario:
     antenna_side_m: float
     hull_length_m: float
     hull_beam_m: float
+    freeboard_m: float  # the deck's height above the waterline (the own hull as rendered)
     quay_east_range: tuple[float, float]
     quay_height_m: float  # quay top above the sea surface
     elevation_mask_deg: float
@@ -124,6 +125,7 @@ SMALL_BOAT = Scenario(
     antenna_side_m=0.10,
     hull_length_m=7.0,
     hull_beam_m=2.5,
+    freeboard_m=0.85,
     quay_east_range=(-60.0, 60.0),
     quay_height_m=1.5,
     elevation_mask_deg=10.0,
@@ -167,6 +169,7 @@ LARGE_SHIP = Scenario(
     antenna_side_m=0.10,
     hull_length_m=200.0,
     hull_beam_m=32.0,
+    freeboard_m=11.0,
     quay_east_range=(-250.0, 250.0),
     quay_height_m=3.0,
     elevation_mask_deg=10.0,

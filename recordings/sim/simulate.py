@@ -182,7 +182,8 @@ def simulate(
     fmt.write_hull(out, Hull(scenario.hull_outline(), scenario.hull_length_m, scenario.hull_beam_m,
                              berth, body_origin_height_m=-scenario.reference_point_down_m,
                              sea_surface_height_m=charted_sea_surface(h, seed),
-                             sea_surface_sigma_m=SEA_SURFACE_SIGMA_M))
+                             sea_surface_sigma_m=SEA_SURFACE_SIGMA_M,
+                             freeboard_m=scenario.freeboard_m))
 
     ref_t = imu.time
     state = motion.state(ref_t - start)
