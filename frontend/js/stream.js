@@ -92,7 +92,8 @@ export class Stream {
     if (msg.type === "frame") {
       this.header = msg;
     } else if (msg.type === "status") {
-      this.playing = !!msg.session?.playing;
+      // a seek sends no frame until it arrives (its progress is on the replay badge)
+      this.playing = !!msg.session?.playing && msg.session.state !== "seeking";
       this.h.onStatus?.(msg.session);
     } else if (msg.type === "closed" || msg.type === "error") {
       // "closed": the session was deleted; "error": it never existed
