@@ -135,8 +135,8 @@ class RecordingCatalog:
 
 
 def _last_change(path: Path) -> float:
-    """The latest modification time of the recording directory's files."""
+    """The latest modification time of the recording directory's files (a dozen)."""
     try:
-        return max((f.stat().st_mtime for f in path.iterdir()), default=0.0)
+        return max((f.stat().st_mtime for f in path.rglob("*")), default=0.0)
     except OSError:
         return 0.0

@@ -164,7 +164,7 @@ def stream_query(query: Mapping[str, str]) -> int | None:
         raise ValueError(f"ack: {query['ack']!r} is not a boolean (1, true, yes, on or 0, "
                          "false, no, off)")
     text = query.get("window", "2")
-    if not text.isdigit() or not 1 <= int(text) <= WINDOW_MAX:
+    if not (text.isascii() and text.isdigit()) or not 1 <= int(text) <= WINDOW_MAX:
         raise ValueError(f"window: {text!r} is not a whole number of frames in 1..{WINDOW_MAX}")
     return int(text) if ack in _TRUE else None
 

@@ -455,7 +455,7 @@ def test_a_bad_stream_query_is_told_by_name(server: Live, client: httpx.Client):
 
     for query, named in (("?window=0", "window"), ("?ack=1&window=abc", "window"),
                          ("?ack=maybe", "ack"), ("?bogus=1", "'bogus'"),
-                         ("?ack=1&window=17", "1..16")):
+                         ("?ack=1&window=17", "1..16"), ("?window=%C2%B2", "window")):
         first, code = asyncio.run(connect(query))
         assert code == 4422 and first["status"] == 422 and named in first["detail"], first
     for query in ("", "?ack=1", "?ack=true&window=16", "?ack=0"):
