@@ -517,8 +517,10 @@ class Berth:
             return None
         return berth_metrics(state, self.rec.hull, world, line.sigma_m, line.sigma_deg)
 
-    def status(self, state: Any | None, start_gpst: float) -> dict[str, Any]:
-        """The line with the berth geometry at ``state``."""
+    def status(self, state: Any | None, start_gpst: float, placed_by: Any | None = None
+               ) -> dict[str, Any]:
+        """The line with the berth geometry at ``state``; without one, the line alone, a
+        recording's placed in the world by ``placed_by`` (any fused state: the origin)."""
         with self.lock:
             line = self.line
         out: dict[str, Any] = {"line_ne": None, "source": None, "method": None, "t": None,
@@ -529,7 +531,7 @@ class Berth:
             return out
         out.update(source=line.source, method=line.method, support_points=line.support,
                    note=line.note, sigma_m=_r(line.sigma_m), sigma_deg=_r(line.sigma_deg))
-        world = self.world(state)
+        world = self.world(state if state is not None else placed_by)
         if world is not None:
             out["line_ne"] = world.round(3).tolist()
         metrics = self.metrics(state)

@@ -398,6 +398,16 @@ class Session:
             return dict(self._timing)
 
     def current_state(self) -> Any:
+        """The fused pose now: 409 while there is none (initialising, or the fusion's last
+        state is behind the frame on screen: no IMU since)."""
+        with self.lock:
+            current = self._current_frame
+        if current is not None and current[1] is not None and current[2] is None:
+            ig = getattr(current[1].status, "integrity", None)
+            why = ig.reasons[0] if ig is not None and ig.reasons else \
+                "the fusion's last state is behind the video"
+            raise Conflict(f"no current pose: {why} (the last fused pose is at "
+                           f"{float(current[1].time) - self.start_gpst:.3f} s)")
         state = self.history.latest()
         if state is None:
             raise Conflict("no fused pose yet: the engine is still initialising "
@@ -488,7 +498,11 @@ class Session:
         if self.berth.line is None:
             raise NotFound("this session has no berth line: PUT one (from two clicks on the "
                            "quay in a frame, two plan points, or typed in from the bow)")
-        return self.berth.status(self.history.latest(), self.start_gpst)
+        try:
+            state = self.current_state()
+        except Conflict:  # the line without figures: none would be current
+            state = None
+        return self.berth.status(state, self.start_gpst, placed_by=self.history.latest())
 
     def clear_berth_line(self) -> None:
         self.berth.clear()

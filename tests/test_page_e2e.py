@@ -18,6 +18,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -397,6 +398,13 @@ def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server:
         assert "No position" in pg.locator("#untrusted").inner_text()
         assert pg.locator("#st-phase").inner_text().endswith("degraded")
         assert pg.locator("#hdg").inner_text() == "–"
+        # and the API says the same: no current pose, a berth line without figures
+        sid = pg.evaluate("() => window.berthing.session.id")
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            _get_json(f"{server}/api/sessions/{sid}/pose")
+        assert refused.value.code == 409 and "no current pose" in refused.value.read().decode()
+        berth = _get_json(f"{server}/api/sessions/{sid}/berth-line")
+        assert berth["line_ne"] is not None and berth["bow_distance_m"] is None, berth
         shot(pg, "07_integrity_alarm")
         # the integrity alarm and the fault behind it both sound: one acknowledgement for all
         pg.locator("#alarms li[data-kind=integrity] button").click()
@@ -406,7 +414,6 @@ def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server:
         back = _wait(pg, "!!f && f.t > 8.5 && b.trust.trusted", 40, "f")
         assert back["status"]["integrity"]["mode"] == "fused"
         # the trajectory has no row from the gap's stale state: times only increase
-        sid = pg.evaluate("() => window.berthing.session.id")
         track = _get_json(f"{server}/api/sessions/{sid}/trajectory")
         t = np.array(track["t"])
         assert np.all(np.diff(t) > 0) and not np.any((t > 6.6) & (t < 8.0)), t[55:90]
