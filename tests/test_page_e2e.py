@@ -14,6 +14,7 @@ import contextlib
 import json
 import os
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -78,6 +79,9 @@ def faulty_recordings(recording: Path, tmp_path_factory: pytest.TempPathFactory)
     return root
 
 
+_SERVER_PIDS: dict[str, int] = {}  # base URL → the server's process (to suspend it)
+
+
 @contextlib.contextmanager
 def _serving(recording: Path, log_name: str, env: dict[str, str] | None = None,
              recordings_dir: Path | None = None) -> Iterator[str]:
@@ -108,6 +112,7 @@ def _serving(recording: Path, log_name: str, env: dict[str, str] | None = None,
                 if time.monotonic() > deadline:
                     pytest.fail(f"server did not answer within 60 s: {log.read_text()}")
                 time.sleep(0.3)
+            _SERVER_PIDS[base] = proc.pid
             yield base
         finally:
             proc.terminate()
@@ -778,6 +783,28 @@ def test_the_page_takes_its_token_from_the_address_and_a_viewer_only_watches(
             if second is not None:
                 second.close()
             officer.close()
+
+
+def test_frames_that_stop_coming_grey_the_page_within_a_second(page, server: str) -> None:
+    """The server stops sending frames while the replay plays (here suspended: hung, or a
+    live session whose sensors all went quiet): within about a second the page says so and
+    no longer trusts what it shows, as if the fusion had declared it; with frames again,
+    trusted again."""
+    wait_trusted(page)
+    os.kill(_SERVER_PIDS[server], signal.SIGSTOP)
+    try:
+        t0 = time.monotonic()
+        page.wait_for_function("() => window.berthing.stats.connection === 'stale' "
+                               "&& !window.berthing.trust.trusted", timeout=5000)
+        assert time.monotonic() - t0 < 1.8
+        assert "No new frames" in page.locator("#untrusted").inner_text()
+        assert page.locator("#st-integrity").inner_text().endswith("no data")
+        assert "unreliable" in (page.locator(".side").get_attribute("class") or "")
+        shot(page, "08_frames_stopped")
+    finally:
+        os.kill(_SERVER_PIDS[server], signal.SIGCONT)
+    page.wait_for_function("() => window.berthing.stats.connection === 'live' "
+                           "&& window.berthing.trust.trusted", timeout=20000)
 
 
 def test_stream_reconnects(page) -> None:

@@ -73,7 +73,7 @@ const stream = new Stream({
     followSeek(s);
     if (s.state === "error" && s.error) toast(`Replay stopped: ${s.error}`);
   },
-  onState: (state, detail) => status.setConnection(state, detail),
+  onState: (state, detail) => { status.setConnection(state, detail); render(); }, // (un)grey
   onGone: (detail) => toast(`Session closed: ${detail}. Reload the page to start again.`),
 });
 

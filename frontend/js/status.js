@@ -75,6 +75,9 @@ export class Status {
   update(frame) {
     const st = frame?.status;
     this.trust = assess(frame);
+    // no new frame for a while (or no connection): what is on screen is the past
+    const frozen = ["stale", "reconnecting", "closed"].includes(this.connection);
+    if (frozen) this.trust = { ...this.trust, trusted: false };
     if (!st) {
       for (const id of ["compass", "sats", "vo", "scale"]) this._chip(id, "–", "warn");
       this._chip("integrity", "no position", "bad");
@@ -98,6 +101,7 @@ export class Status {
       this._chip("scale", st.scale_converged ? "converged" : "converging",
         st.scale_converged ? "ok" : "warn", st.scale == null ? "" : `VO scale ${st.scale.toFixed(3)}`);
     }
+    if (frozen && st) this._chip("integrity", "no data", "bad", "no new frame from the server");
     this._notice();
     return this.trust;
   }

@@ -7,7 +7,11 @@
 import { accessToken } from "./api.js";
 
 const RECONNECT_MS = [500, 1000, 2000, 4000, 5000];
-const STALE_MS = 2500; // no frame for this long while playing: say so
+// No frame for this long while playing: say so (and the page stops trusting what it shows).
+// Three frame intervals of a 10 fps video at the replay's speed, at least a second.
+const STALE_MIN_MS = 1000;
+const staleMs = (speed) => (typeof speed === "number" && speed > 0
+  ? Math.max(STALE_MIN_MS, 300 / speed) : STALE_MIN_MS);
 
 export class Stream {
   /**
@@ -29,7 +33,8 @@ export class Stream {
     this.frames = 0;
     this.dropped = 0;
     this._timer = null;
-    this._stale = setInterval(() => this._checkStale(), 500);
+    this.staleMs = STALE_MIN_MS;
+    this._stale = setInterval(() => this._checkStale(), 250);
   }
 
   open(sessionId) {
@@ -94,6 +99,7 @@ export class Stream {
     } else if (msg.type === "status") {
       // a seek sends no frame until it arrives (its progress is on the replay badge)
       this.playing = !!msg.session?.playing && msg.session.state !== "seeking";
+      this.staleMs = staleMs(msg.session?.speed);
       this.h.onStatus?.(msg.session);
     } else if (msg.type === "closed" || msg.type === "error") {
       // "closed": the session was deleted; "error": it never existed
@@ -132,7 +138,7 @@ export class Stream {
 
   _checkStale() {
     if (this.state === "live" && this.playing && this.lastFrameAt
-        && performance.now() - this.lastFrameAt > STALE_MS) {
+        && performance.now() - this.lastFrameAt > this.staleMs) {
       this._set("stale", "no frames");
     }
   }
