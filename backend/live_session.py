@@ -57,6 +57,14 @@ log = logging.getLogger(__name__)
 FIRST_MESSAGE_TIMEOUT_S = 30.0
 MAX_QUEUED_FRAMES = 4  # 0.4 s of video at 10 fps: beyond, the engine skips frames to keep up
 MAX_UNWRITTEN = 1200  # ~11 s of messages (~190 MB of frames) waiting for a stalled disk
+QUIET_TICK_S = 0.5  # no message for this long: the engine is told the time (sensors silent)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Quiet:
+    """No message from any sensor until ``t`` (gpst, from the source's clock)."""
+
+    t: float
 
 
 class LiveRunner:
@@ -87,6 +95,7 @@ class LiveRunner:
             queue.SimpleQueue()
         self._nav_count = -1
         self._prepare: Callable[[np.ndarray], Any] | None = None  # the engine's prepare_frame
+        self._last_frame: FrameMessage | None = None  # shown again, with the status, if quiet
         self._thread = threading.Thread(target=self._run, name="live-session", daemon=True)
         self._pump = threading.Thread(target=self._take_messages, name="live-source",
                                       daemon=True)
@@ -233,11 +242,18 @@ class LiveRunner:
 
     def _next_for_engine(self) -> Any:
         """The next message for the engine (None once stopped); video frames are skipped while
-        more than ``MAX_QUEUED_FRAMES`` wait (the engine is behind the sensors)."""
+        more than ``MAX_QUEUED_FRAMES`` wait (the engine is behind the sensors). After
+        ``QUIET_TICK_S`` without any, and every as long again, a ``_Quiet`` with the time."""
         with self._arrived:
             while True:
+                waited = time.monotonic()
                 while not self._queue and not self._stop.is_set():
-                    self._arrived.wait(0.2)
+                    self._arrived.wait(0.1)
+                    if not self._queue and time.monotonic() - waited >= QUIET_TICK_S:
+                        now = self.source.aligner.clock.to_gpst(time.monotonic())
+                        if now is not None and now > self._t:
+                            return _Quiet(float(now))
+                        waited = time.monotonic()
                 if self._stop.is_set():
                     return None
                 msg = self._queue.popleft()
@@ -249,6 +265,9 @@ class LiveRunner:
                 self.skipped_frames += 1
 
     def _process(self, engine: FusionEngine, msg: Any) -> None:
+        if isinstance(msg, _Quiet):
+            self._quiet(engine, msg.t)
+            return
         fused = dispatch(engine, msg)
         with self._lock:
             self._t = msg.t
@@ -263,8 +282,23 @@ class LiveRunner:
             self._frames = n + 1
             now = self.source.aligner.clock.to_gpst(time.monotonic())
             self._lag = 0.0 if now is None else max(0.0, now - msg.t)  # behind the sensors
+        self._last_frame = msg
         self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, True, time.time()),
                             engine)
+
+    def _quiet(self, engine: FusionEngine, t: float) -> None:
+        """Every sensor silent until ``t``: the engine declares it, and the page gets the
+        status (the last picture again, no pose: ``history.is_current``) within a second."""
+        tick = getattr(engine, "tick", None)
+        if tick is None:
+            return
+        tick(t)
+        with self._lock:
+            self._t = t
+        last = self._last_frame
+        if last is not None:
+            self._sink.on_frame(FrameResult(last.index, t, last.image, engine.state(at=t), True,
+                                            time.time()), engine)
 
     def _fail(self, message: str) -> None:
         with self._lock:

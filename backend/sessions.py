@@ -133,6 +133,7 @@ class Session:
         # The last frame played to clients (or that would have been, unwatched): what a client
         # joining now must see, even while paused.
         self._current_frame: tuple[FrameResult, Any | None, Any | None] | None = None
+        self._last_state: Any | None = None  # the fusion's latest, current or not: its status
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
         self.closers: list[Callable[[], None]] = []  # called when the session closes
@@ -201,6 +202,7 @@ class Session:
                 self._structure = structure
             self._frames.append((result.index, result.t, result.image))
             if state is not None:
+                self._last_state = state
                 self.alarms.update(state, alerts, self.berth.metrics(pose))
             if pose is not None:
                 self.history.append(result.t, pose)
@@ -222,6 +224,7 @@ class Session:
 
     def on_rewind(self, t: float | None) -> None:
         with self.lock:
+            self._last_state = None
             self.history.rewind(t)
             self.targets.rewind(t)
             self.alarms.rewind()
@@ -360,6 +363,8 @@ class Session:
         replay = self.replayer.status()
         latest = self.history.latest()
         with self.lock:
+            # the latest status the fusion gave, also when it had no pose for its frame
+            latest = self._last_state or latest
             fused = None if latest is None else status_dict(latest.status)
             clients = len(self._subscribers)
         target = replay["seek_target_gpst"]

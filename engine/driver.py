@@ -59,6 +59,9 @@ class FusionEngine(Protocol):
 
     def process_vo(self, out: VoOutput) -> None: ...
 
+    # An engine may also have ``tick(t)``: no message has come until gpst t (a live feed gone
+    # quiet), so that it declares the silence (``Fusion.tick``); a live session calls it.
+
     def state(self, at: float | None = None) -> Any | None: ...
 
     def structure(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...

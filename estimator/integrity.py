@@ -181,6 +181,11 @@ class IntegrityMonitor:
     def _input(self, t: float) -> None:
         self.last_input = max(self.last_input, t)
 
+    def quiet_until(self, t: float) -> None:
+        """Nothing arrived from any sensor until ``t`` (a live source gone quiet, on the
+        receiver clock): the streams' silence counts up to it."""
+        self._input(t)
+
     # ---------------------------------------------------------------------------- IMU
 
     def imu(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> bool:
@@ -265,7 +270,7 @@ class IntegrityMonitor:
                 # as the reference: three are enough for the whole attitude
                 self.raise_fault(kind, t, f"receiver {i + 1} silent for "
                                  f"{self._rx_missing[i]} epochs: {_attitude_left(left)}")
-        self._stream_checks(t)
+        self.check_streams(t)
         return True
 
     def slips(self, t: float, slipped: int, tracked: int) -> None:
@@ -339,8 +344,8 @@ class IntegrityMonitor:
         A = self.origin_drift[:2]
         return A @ self.origin_cov @ A.T
 
-    def _stream_checks(self, t: float) -> None:
-        """Streams that fell silent while others go on."""
+    def check_streams(self, t: float) -> None:
+        """Streams that fell silent while others go on (or until ``quiet_until``)."""
         if math.isfinite(self.last_imu) and t - self.last_imu > self.cfg.imu_silent_s:
             # (one message while it lasts: the alarm list keeps the first, the banner the last)
             self.raise_fault("imu-silent", t, f"no IMU sample for over "
@@ -353,7 +358,7 @@ class IntegrityMonitor:
                heading_var: float | None) -> Integrity:
         """The integrity of a state at ``t``: its mode, protection levels and trust."""
         cfg = self.cfg
-        self._stream_checks(max(t, self.last_input))
+        self.check_streams(max(t, self.last_input))
         if self.is_active("imu-silent"):
             mode = "no position"
         hpl = hdg = None

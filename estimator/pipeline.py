@@ -128,6 +128,11 @@ class Fusion:
 
     # ------------------------------------------------------------------ public inputs
 
+    def tick(self, t: float) -> None:
+        """No sensor message has arrived until gpst ``t`` (a live feed gone quiet): the
+        silence of every stream is declared from the time, not only when another speaks."""
+        self.monitor.quiet_until(float(t))
+
     def process_imu(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> None:
         """One raw IMU sample (gpst, rad/s, m/s², body axes): INS + covariance propagation
         (and the waiting GNSS / VO updates at their exact times on the way)."""
@@ -254,6 +259,7 @@ class Fusion:
 
     def status(self) -> FusionStatus:
         ekf, carrier = self.ekf, self.carrier
+        self.monitor.check_streams(self.monitor.last_input)  # a silent IMU decides the phase
         if ekf is None or carrier is None:
             phase = "initialising"
         elif carrier.aligning and not len(carrier.integers):

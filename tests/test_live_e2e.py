@@ -143,6 +143,14 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
                 assert time.monotonic() < deadline + 120, \
                 f"the live run did not end ({caught_up or 'the emulator still playing'})"
             status = json.loads(_get(f"{base}/api/sessions/{live['id']}"))
+            # every sensor is silent now: the session must come to say so by itself
+            quiet_deadline = time.monotonic() + 3.0
+            while True:
+                quiet = json.loads(_get(f"{base}/api/sessions/{live['id']}"))
+                if quiet["fusion"]["integrity"]["mode"] == "no position" \
+                        or time.monotonic() > quiet_deadline:
+                    break
+                time.sleep(0.1)
             live_traj = _trajectory(base, live["id"])
             replay = _post(base + "/api/sessions", {"recording": sim_recording.name,
                                                     "speed": "max"})
@@ -162,8 +170,8 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
                 except subprocess.TimeoutExpired:
                     p.kill()
             udp.close()
-    yield {"status": status, "live": live_traj, "replay": replay_traj, "udp": datagrams,
-           "tcp": bytes(stream), "frames_seen": frames_seen, "work": work,
+    yield {"status": status, "quiet": quiet, "live": live_traj, "replay": replay_traj,
+           "udp": datagrams, "tcp": bytes(stream), "frames_seen": frames_seen, "work": work,
            "recording": sim_recording}
 
 
@@ -329,3 +337,14 @@ def test_an_engine_behind_the_sensors_skips_frames_never_imu_or_gnss():
     assert len(frames) == MAX_QUEUED_FRAMES and runner.skipped_frames == 40 - MAX_QUEUED_FRAMES
     assert [f.index for f in frames] == list(range(40 - MAX_QUEUED_FRAMES, 40))  # the newest
     assert all(a.t <= b.t for a, b in zip(taken, taken[1:], strict=False))
+
+
+def test_a_live_feed_gone_quiet_is_declared(live_run):
+    """Once the emulator has played out, every sensor is silent. Nothing arrives to make
+    the engine notice, so the live session tells it the time: the session declares no
+    position (untrusted, the IMU's silence first) rather than keep its last fused status."""
+    fusion = live_run["quiet"]["fusion"]  # within 3 s of the session having caught up
+    integrity = fusion["integrity"]
+    assert integrity["mode"] == "no position" and not integrity["trusted"], fusion
+    assert "no IMU sample" in integrity["reasons"][0], integrity["reasons"]
+    assert fusion["phase"] == "degraded"

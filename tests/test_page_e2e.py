@@ -410,6 +410,8 @@ def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server:
         assert refused.value.code == 409 and "no current pose" in refused.value.read().decode()
         berth = _get_json(f"{server}/api/sessions/{sid}/berth-line")
         assert berth["line_ne"] is not None and berth["bow_distance_m"] is None, berth
+        fusion = _get_json(f"{server}/api/sessions/{sid}")["fusion"]
+        assert fusion["phase"] == "degraded" and not fusion["integrity"]["trusted"], fusion
         shot(pg, "07_integrity_alarm")
         # the integrity alarm and the fault behind it both sound: one acknowledgement for all
         pg.locator("#alarms li[data-kind=integrity] button").click()
