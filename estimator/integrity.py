@@ -79,6 +79,7 @@ class IntegrityConfig:
     frozen_samples: int = 20  # the same raw sample this many times running: frozen
     # GNSS checks
     receiver_silent_epochs: int = 3  # epochs without a receiver before it is declared silent
+    gnss_silent_s: float = 2.5  # no GNSS epoch at all for this long (they come each second)
     slip_burst_fraction: float = 0.5  # this share of the tracked signals slipping at once
     clock_jump_m: float = 3000.0  # common change of all ranges beyond the drift (1 µs ≈ 300 m)
     spp_max_speed_mps: float = 50.0  # standalone positions implying more than this
@@ -257,6 +258,7 @@ class IntegrityMonitor:
             return False
         self.last_gnss = t
         self._input(t)
+        self.clear("gnss-silent", t, "GNSS epochs arrive again")
         left = sum(present)
         for i, here in enumerate(present):
             kind = f"receiver-{i + 1}-silent"
@@ -350,6 +352,9 @@ class IntegrityMonitor:
             # (one message while it lasts: the alarm list keeps the first, the banner the last)
             self.raise_fault("imu-silent", t, f"no IMU sample for over "
                              f"{self.cfg.imu_silent_s:g} s: no position")
+        if math.isfinite(self.last_gnss) and t - self.last_gnss > self.cfg.gnss_silent_s:
+            self.raise_fault("gnss-silent", t, f"no GNSS epoch for over "
+                             f"{self.cfg.gnss_silent_s:g} s: no satellites, no carrier phase")
         if self.frames_seen and t - self.last_frame > self.cfg.video_silent_s:
             self.raise_fault("video-silent", t, f"no video frame for over "
                              f"{self.cfg.video_silent_s:g} s: no VO")

@@ -271,6 +271,8 @@ class Fusion:
         vo_status = self.coupling.status
         if vo_status == "tracking" and self.coupling.excluded:
             vo_status = "excluded"  # tracking, but off the gyro or the fused track
+        if self.monitor.is_active("video-silent"):
+            vo_status = "lost"  # its last output is no longer what the camera sees
         scale = None
         converged = False
         if ekf is not None and ekf.vo is not None and vo_status == "tracking":
@@ -286,8 +288,9 @@ class Fusion:
             self.monitor.last_input, _MODE[phase],
             None if ekf is None else ekf.P[ekf.ix.R, ekf.ix.R],
             None if ekf is None else float(ekf.P[ekf.ix.E, ekf.ix.E][2, 2]))
+        gnss = carrier is not None and not self.monitor.is_active("gnss-silent")
         return FusionStatus(phase=phase, compass_fixed=fixed,
-                            satellites=0 if carrier is None else carrier.n_sats,
+                            satellites=carrier.n_sats if gnss else 0,
                             vo_status=vo_status, scale=scale, scale_converged=converged,
                             message=message, integrity=integrity)
 

@@ -78,6 +78,28 @@ def test_monitor_streams_silent_receivers_and_the_clock() -> None:
     assert not m.gnss(13.0, [True] * 4)  # an epoch from the past is dropped
 
 
+def test_monitor_a_feed_gone_quiet_is_declared_from_the_time_alone() -> None:
+    """Every stream stops at once (a live feed cut): nothing arrives to notice it by, so
+    the live session tells the monitor the time; each silence is declared from it."""
+    m = IntegrityMonitor()
+    rng = np.random.default_rng(1)
+    for k in range(100):
+        m.imu(10.0 + 0.01 * k, rng.normal(0, 0.01, 3), G + rng.normal(0, 0.05, 3))
+    m.vo_frame(10.9, "")
+    m.gnss(10.0, [True] * 4)
+    m.check_streams(m.last_input)
+    assert not m.active
+    m.quiet_until(12.0)
+    m.check_streams(m.last_input)
+    assert m.is_active("imu-silent") and m.is_active("video-silent")
+    assert not m.is_active("gnss-silent")  # epochs come once a second: not yet
+    m.quiet_until(12.6)
+    m.check_streams(m.last_input)
+    assert m.is_active("gnss-silent") and "no satellites" in m.active["gnss-silent"].message
+    m.gnss(12.7, [True] * 4)
+    assert not m.is_active("gnss-silent")
+
+
 def test_protection_level_and_trust() -> None:
     cfg = IntegrityConfig()
     m = IntegrityMonitor(cfg)
