@@ -153,6 +153,9 @@ def baseline_report(
             if ea is not None and eb is not None]
     if len(rows) < 2:
         raise ValueError("the two files have fewer than 2 common epochs")
+    if all(ea.satellites == eb.satellites for _t, ea, eb in rows):
+        raise ValueError("the base and rover observations are the same, epoch for epoch (the "
+                         "same file twice?): a baseline needs two receivers")
     interval = float(np.median(np.diff([r[0] for r in rows])))
     truth = _surveyed_baseline(base_position_llh_deg, rover_position_llh_deg)
     # Standalone solutions once per epoch and receiver, shared by every run below.

@@ -48,6 +48,9 @@ def test_baseline_report_on_the_real_static_pair():
         assert v.horizontal_rms_mps < 0.01 and v.epochs >= 100
     text = format_baseline_report(report)
     assert "wrong fixes 0" in text and "TDCP velocity" in text
+    # one receiver's file given twice is no baseline (it read "fixed 100 %, length 0 m")
+    with pytest.raises(ValueError, match="the same, epoch for epoch"):
+        baseline_report(DATA / "static_base.obs", DATA / "static_base.obs", DATA / "static.nav")
 
 
 def test_json_of_the_gnss_records():
