@@ -1016,7 +1016,10 @@ def summary(rec: Recording) -> dict[str, Any]:
         "file": files["video"],
         "width": v.width if v else None,
         "height": v.height if v else None,
-        "fps": v.fps if v else None,
+        # the rate the frame times give (a raw MJPEG stream's container says 25 whatever)
+        "fps": round(1.0 / float(np.median(np.diff(rec.frame_times))), 3)
+        if len(rec.frame_times) > 1 else None,
+        "container_fps": v.fps if v else None,
         "frame_count": v.frame_count if v else None,
         "frame_times": len(rec.frame_times),
         "frame_count_mismatch": bool(v and v.frame_count != len(rec.frame_times)),
@@ -1056,9 +1059,13 @@ def _receiver_summary(rel: str, epochs: list[GnssEpoch], header: ObsHeader) -> d
     systems = sorted(present, key=lambda c: (_SYSTEM_ORDER.index(c) if c in _SYSTEM_ORDER
                                              else len(_SYSTEM_ORDER), c))
     slips = sum(1 for e in epochs for o in e.satellites.values() if o.lli & 1)
+    times = np.array([e.time for e in epochs])
+    steps = np.diff(times)
     interval = header.interval
     if interval is None and len(epochs) > 1:
-        interval = float(np.median(np.diff([e.time for e in epochs])))
+        interval = float(np.median(steps))
+    # epochs missing (a receiver silent for a while): spacing beyond 1.5 intervals
+    holes = np.flatnonzero(steps > 1.5 * interval) if interval else np.zeros(0, int)
     return {
         "file": rel,
         "epochs": len(epochs),
@@ -1072,6 +1079,8 @@ def _receiver_summary(rel: str, epochs: list[GnssEpoch], header: ObsHeader) -> d
         },
         "systems": "".join(systems),
         "cycle_slip_flags": slips,
+        "gaps": [{"start_gpst": float(times[k]), "length_s": round(float(steps[k]), 3)}
+                 for k in holes],
     }
 
 
@@ -1090,7 +1099,8 @@ def format_summary(info: dict[str, Any]) -> str:
     lat, lon, h = info["origin_llh_deg"]
     rows.append(("origin", f"lat {lat:.7f} deg, lon {lon:.7f} deg, h {h:.2f} m"))
     v = info["video"]
-    rows.append(("video", f"{v['file']}: {v['width']}x{v['height']} @ {v['fps']:.1f} fps, "
+    fps = "?" if v["fps"] is None else f"{v['fps']:.1f}"
+    rows.append(("video", f"{v['file']}: {v['width']}x{v['height']} @ {fps} fps, "
                           f"{v['frame_count']} frames (frame times: {v['frame_times']})"
                           + ("  MISMATCH" if v["frame_count_mismatch"] else "")))
     imu = info["imu"]
@@ -1108,7 +1118,9 @@ def format_summary(info: dict[str, Any]) -> str:
         rows.append((f"gnss rx{i}",
                      f"{r['file']}: {r['epochs']} epochs{interval}, satellites "
                      f"{spe['min']}/{spe['mean']:.1f}/{spe['max']} (min/mean/max), systems "
-                     f"{r['systems'] or '-'}, {r['cycle_slip_flags']} cycle-slip flags"))
+                     f"{r['systems'] or '-'}, {r['cycle_slip_flags']} cycle-slip flags"
+                     + (f", {len(r['gaps'])} gap(s), longest "
+                        f"{max(g['length_s'] for g in r['gaps']):g} s" if r["gaps"] else "")))
     nav = info["nav"]
     if nav["loaded"]:
         per = ", ".join(f"{sys} {e['ephemerides']} ({e['satellites']} sats)"

@@ -23,7 +23,7 @@ from evaluation.integrity import integrity_scores
 from evaluation.runs import fuse
 from evaluation.scoring import run_errors
 from recordings.faults import DEFAULTS, inject, parse_fault
-from recordings.format import load
+from recordings.format import load, summary
 
 G = np.array([0.0, 0.0, -9.81])
 
@@ -171,6 +171,11 @@ def test_injected_damage_is_what_it_says(sim_recording: Path, tmp_path: Path) ->
         with pytest.raises(ValueError, match=msg):
             inject(sim_recording, fault, out)
         assert not out.exists()
+    # `info` shows a receiver's hole and the video's rate as the frame times give it
+    silent = summary(load(inject(sim_recording, "receiver-silent:2:4:3", tmp_path / "rx2")))
+    gaps = [r["gaps"] for r in silent["gnss"]["receivers"]]
+    assert gaps[0] == [] and len(gaps[1]) == 1 and gaps[1][0]["length_s"] == pytest.approx(4.0)
+    assert silent["video"]["fps"] == pytest.approx(10.0)
     end = load(inject(sim_recording, "imu-end:7", tmp_path / "end"))
     assert any("imu.csv ends at 7.0 s" in w for w in end.warnings)
     assert load(inject(sim_recording, "video-end:7", tmp_path / "vend")).warnings
