@@ -121,10 +121,12 @@ def integrity_dict(integrity: Any) -> dict[str, Any]:
     def level(x: float | None, digits: int) -> float | None:
         return None if x is None or not np.isfinite(x) else round(float(x), digits)
 
+    # 4 digits: the page rounds them to 2, as the reasons' text does (3 then 2 put the chip's
+    # ±0.54 m beside the banner's 0.53 m)
     return {"mode": integrity.mode, "trusted": bool(integrity.trusted),
             "reasons": [str(r) for r in integrity.reasons],
-            "hpl_m": level(integrity.hpl_m, 3),
-            "heading_pl_deg": level(integrity.heading_pl_deg, 3),
+            "hpl_m": level(integrity.hpl_m, 4),
+            "heading_pl_deg": level(integrity.heading_pl_deg, 4),
             "alert_limit_m": float(integrity.alert_limit_m),
             "heading_alert_limit_deg": float(integrity.heading_alert_limit_deg)}
 
