@@ -16,6 +16,7 @@ gives the live configuration pointing at it.
 
 from __future__ import annotations
 
+import bisect
 import socket
 import threading
 import time
@@ -61,17 +62,30 @@ class _ReceiverServer:
         return False
 
     def play(self, clock: _Clock, stop: threading.Event) -> None:
-        assert self.client is not None
+        """Send each message at its time. A client that goes away (the session dropped a
+        stalled link) may come back, as to a receiver: the next one gets the messages from
+        then on (a receiver does not keep what it sent to nobody)."""
+        times = [t for t, _data in self.messages]
+        k = 0
         try:
-            for t, data in self.messages:
-                if not clock.wait_until(t, stop):
+            while self.client is not None:
+                try:
+                    while k < len(self.messages):
+                        if not clock.wait_until(times[k], stop):
+                            return
+                        self.client.sendall(self.messages[k][1])
+                        self.sent += 1
+                        k += 1
                     return
-                self.client.sendall(data)
-                self.sent += 1
-        except OSError:  # the session went away: as a receiver unplugged
-            return
+                except OSError:  # the session went away: as a receiver unplugged
+                    self.client.close()
+                    self.client = None
+                    if not self.accept(stop):
+                        return
+                    k = max(k, bisect.bisect_left(times, clock.now()))
         finally:
-            self.client.close()
+            if self.client is not None:
+                self.client.close()
 
     def close(self) -> None:
         self._server.close()
@@ -81,6 +95,11 @@ class _Clock:
     def __init__(self, t0: float, speed: float):
         self.t0, self.speed = t0, speed
         self.start: float | None = None
+
+    def now(self) -> float:
+        """The recording's time the clock is at."""
+        assert self.start is not None
+        return self.t0 + (time.monotonic() - self.start) * self.speed
 
     def wait_until(self, t: float, stop: threading.Event) -> bool:
         assert self.start is not None

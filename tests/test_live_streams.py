@@ -105,3 +105,36 @@ def test_unreachable_receiver_is_an_error():
         open_stream(f"tcp://127.0.0.1:{port}", stall_timeout_s=1.0)
     with pytest.raises(ValueError, match="unknown stream kind"):
         open_stream("ftp://x:1")
+
+
+def test_the_emulators_receiver_port_takes_a_client_back():
+    """A session that dropped a stalled receiver link connects again: the emulator's port
+    serves the new client from then on, as a receiver would (it kept nothing for nobody),
+    instead of having stopped at the first lost client."""
+    from live.emulator import _Clock, _ReceiverServer
+
+    msgs = [(100.0 + 0.1 * k, f"m{k:03d};".encode()) for k in range(30)]  # 3 s of them
+    server = _ReceiverServer(msgs, "127.0.0.1")
+    stop, clock = threading.Event(), _Clock(100.0, 1.0)
+    first = socket.create_connection(server.address)
+    assert server.accept(stop)
+    clock.start = time.monotonic()
+    player = threading.Thread(target=server.play, args=(clock, stop), daemon=True)
+    player.start()
+    try:
+        first.settimeout(5)
+        assert first.recv(64).startswith(b"m000;")
+        first.close()  # the session gives up on it
+        time.sleep(0.5)
+        second = socket.create_connection(server.address)
+        second.settimeout(5)
+        data = b""
+        while chunk := second.recv(4096):
+            data += chunk
+        second.close()
+        assert data.endswith(b"m029;") and b"m000;" not in data, data
+        player.join(5)
+        assert not player.is_alive()
+    finally:
+        stop.set()
+        server.close()
