@@ -1044,9 +1044,8 @@ class DesignatedTarget:
         if self.attitude_cov is not None:
             J = common_rotation_jacobian(*common)
             P = P + J @ self.attitude_cov @ J.T
-        if self.water_down_m is not None and \
-                X[2] - self.water_down_m > 3.0 * math.sqrt(max(P[2, 2], 0.0)):
-            return 0  # below the water: the track followed a mirror image (the drifts unspent)
+        if self._under_water(X, P):
+            return 0  # the track followed a mirror image (the drifts unspent)
         # The views' slow common drifts: their camera centres' from the click
         # (``TargetParams.position_drift_mps``), the track's while it is unanchored
         # (``unanchored_drift_px_per_s``).
@@ -1059,6 +1058,12 @@ class DesignatedTarget:
         self.map.x[0], self.map.P[0] = X, P
         self.refined_views = n
         return n
+
+    def _under_water(self, X: np.ndarray, P: np.ndarray) -> bool:
+        """Whether the point ``X`` (covariance ``P``) lies under the water plane by more
+        than 3σ: nothing the ship can run into is there."""
+        return self.water_down_m is not None and \
+            X[2] - self.water_down_m > 3.0 * math.sqrt(max(P[2, 2], 0.0))
 
     def ray_variance(self) -> np.ndarray:
         """(len(seen),): each view's angular variance (normalised units²) — the tracker's
@@ -1140,6 +1145,11 @@ class DesignatedTarget:
         out = self.map.update(0.0, C, c, pose_cov, np.array([0]), xy)
         if self.refined:  # the fused attitude only checks a refined point (class docstring)
             self.map.x[0], self.map.P[0] = kept
+        elif self._under_water(self.map.x[0], self.map.P[0]):
+            # a mirror image, or something the ship carries along: refused, as ``refine``
+            # refuses it (the views disagreeing with the point, the track is given up)
+            self.map.x[0], self.map.P[0] = kept
+            return False
         ok = out.gated == 0
         if ok and math.isfinite(t):
             self.seen.add(np.array([t]), xy, np.array([self.unanchored_s]))

@@ -884,3 +884,33 @@ def test_a_forward_track_sliding_late_shows_in_its_halves_disagreement():
         else:
             assert error > 0.2 and error > 3 * sigma, (error, sigma)
             assert error <= 2 * widened, (error, widened)
+
+
+def test_views_that_pull_a_target_under_the_water_are_refused(along_path):
+    """Before its first refinement each tracked view updates the target's 3-D point. Views
+    that would put it under the water plane (a track on a mirror image, or on something the
+    ship carries along) are refused as ``refine`` refuses such a triangulation: the point
+    never sinks more than 3σ under the water, and the track is given up. With the water
+    below the point the same views are taken."""
+    seq, point = along_path
+    times = T0 + 0.1 * np.arange(N_FRAMES)
+    truth = seq.truth(point)
+    C0, p0 = seq.poses[0]
+    dz = point[2] - p0[2]
+    assert dz > 0.1  # the wall point is below the camera: its ray goes down
+    start = p0 + 0.4 * (point - p0)  # the click's point on its ray, short of the wall
+    for water_down, sinks in ((point[2] + 5.0, False), (p0[2] + 0.6 * dz, True)):
+        tgt = DesignatedTarget(seq.cam, seq.images[0], truth[0], start, None,
+                               CameraView(times[0], C0, p0), params=TargetParams(), seed=0,
+                               water_down_m=water_down)
+        lowest, states = -np.inf, []
+        for k in range(1, N_FRAMES):
+            states.append(tgt.update(seq.images[k], CameraView(times[k], *seq.poses[k])))
+            X, P = tgt.position_ned, tgt.covariance
+            lowest = max(lowest, (X[2] - water_down) / np.sqrt(P[2, 2]))
+        err = np.linalg.norm(tgt.position_ned - point)
+        if sinks:
+            assert lowest <= 3.0, lowest
+            assert any(st.status == "lost" and "disagrees" in st.reason for st in states)
+        else:
+            assert err < 0.5 * np.linalg.norm(start - point), err  # the views pulled it in
