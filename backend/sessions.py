@@ -361,10 +361,9 @@ class Session:
 
     def status_brief(self) -> dict[str, Any]:
         replay = self.replayer.status()
-        latest = self.history.latest()
         with self.lock:
             # the latest status the fusion gave, also when it had no pose for its frame
-            latest = self._last_state or latest
+            latest = self._last_state or self.history.latest()
             fused = None if latest is None else status_dict(latest.status)
             clients = len(self._subscribers)
         target = replay["seek_target_gpst"]
@@ -406,13 +405,13 @@ class Session:
         """The fused pose now: 409 while there is none (initialising, or the fusion's last
         state is behind the frame on screen: no IMU since)."""
         with self.lock:
-            current = self._current_frame
-        if current is not None and current[1] is not None and current[2] is None:
-            ig = getattr(current[1].status, "integrity", None)
+            _result, shown, pose = self._current_frame or (None, None, None)
+        if shown is not None and pose is None:  # a state, but not a pose of the frame shown
+            ig = getattr(shown.status, "integrity", None)
             why = ig.reasons[0] if ig is not None and ig.reasons else \
                 "the fusion's last state is behind the video"
             raise Conflict(f"no current pose: {why} (the last fused pose is at "
-                           f"{float(current[1].time) - self.start_gpst:.3f} s)")
+                           f"{float(shown.time) - self.start_gpst:.3f} s)")
         state = self.history.latest()
         if state is None:
             raise Conflict("no fused pose yet: the engine is still initialising "
