@@ -20,6 +20,8 @@ from collections.abc import Collection, Iterable, Sequence
 import numpy as np
 
 from .cpp import (
+    FIT_UNKNOWNS,
+    MIN_FIT_SATELLITES,
     SAME_CARRIER_SYSTEMS,
     EpochGeometry,
     EtaRow,
@@ -33,7 +35,14 @@ from .cpp import (
     robust_lsq,
     tdcp_fit,
 )
-from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput, chi2_gate
+from .ekf import (
+    EkfConfig,
+    ErrorStateEkf,
+    EtaInput,
+    SdRow,
+    VelocityInput,
+    chi2_gate,
+)
 from .frames import ecef_to_ned, ned_to_ecef
 from .gnss_epochs import N_RECEIVERS, GnssFront
 from .integrity import IntegrityMonitor
@@ -216,17 +225,29 @@ class CarrierPhaseCoupling:
                                               covariance=lv.covariance_ned,
                                               interval=lv.interval_s))
                     used |= set(lv.satellites)
+            vels = [v for v in vels if ekf.interval_ok(v.interval)]
+            offs = [float(np.linalg.norm(ekf.velocity_innovation(v)[0])) for v in vels]
             res = ekf.update_velocity(vels)
+            if vels:
+                turned = [k for k, v in enumerate(vels) if v.antenna in res.rejected]
+                self._check_gated(len(turned), len(vels), max((offs[k] for k in turned),
+                                  default=0.0), "receivers' velocities", ekf)
             if res.accepted:
                 self.last_velocity_time = ekf.time
             else:
                 used = set()
-        fit = self._fit(eta, ekf)
+        taken, innovation = self._innovations(eta, ekf)
+        fit = self._fit(taken, innovation, ekf)
         if fit is not None:
             self._check_velocity(fit, ekf)
         self._check_attitude(sd_rows, ekf)
         rate_sigma = max(self.cfg.tdcp_rate_sigma, fit.scatter if fit is not None else 0.0)
         res_eta, res_sd = ekf.update_carrier_phase(eta, sd_rows, rate_sigma)
+        if taken and fit is None:
+            turned = set(res_eta.rejected)
+            self._check_gated(len({taken[k].sat for k in turned}), len({r.sat for r in taken}),
+                              max((abs(innovation[k]) for k in turned), default=0.0),
+                              "satellites (too few to fit a velocity)", ekf)
         if eta:
             bad = set(res_eta.rejected)
             used = {r.sat for k, r in enumerate(rows) if k not in bad}
@@ -247,16 +268,44 @@ class CarrierPhaseCoupling:
         return used
 
     @staticmethod
-    def _fit(eta: Sequence[EtaInput], ekf: ErrorStateEkf) -> TdcpFit | None:
-        """The epoch's η innovations fitted with a common correction (``cpp.tdcp_fit``); only
-        rows over the interval since the EKF's clone (those the update takes)."""
-        eta = [r for r in eta if ekf.interval_ok(r.interval)]
-        if not eta:
+    def _innovations(eta: Sequence[EtaInput], ekf: ErrorStateEkf
+                     ) -> tuple[list[EtaInput], np.ndarray]:
+        """The η rows the update takes (over the interval since the EKF's clone), in its
+        order, and their innovations against the INS's prediction (m/s)."""
+        taken = [r for r in eta if ekf.interval_ok(r.interval)]
+        return taken, np.array([r.measured - ekf.eta_model(r.antenna, r.u_ned, r.interval)[0]
+                                for r in taken])
+
+    @staticmethod
+    def _fit(taken: Sequence[EtaInput], innovation: np.ndarray, ekf: ErrorStateEkf
+             ) -> TdcpFit | None:
+        """The epoch's η innovations fitted with a common correction (``cpp.tdcp_fit``)."""
+        if not taken:
             return None
-        y = np.array([r.measured - ekf.eta_model(r.antenna, r.u_ned, r.interval)[0]
-                      for r in eta])
-        return tdcp_fit([r.sat for r in eta], y, np.array([r.u_ned for r in eta]),
-                        np.array([r.sigma for r in eta]))
+        return tdcp_fit([r.sat for r in taken], innovation, np.array([r.u_ned for r in taken]),
+                        np.array([r.sigma for r in taken]), ekf.cfg.tdcp_rate_sigma)
+
+    def _check_gated(self, turned: int, of: int, speed: float, what: str,
+                     ekf: ErrorStateEkf) -> None:
+        """Where the velocity check cannot run (1–3 satellites; the loose receivers'
+        velocities), its stand-in: when the gate turned away ``turned`` of ``of`` (half or
+        more), the INS and the carrier phase disagree and nothing can say which is right —
+        left alone, the INS runs away while a satellite or two along the way keep the state
+        "fused". Declared, and the INS widened by the largest disagreement turned away
+        (``speed``, m/s), so that the next epoch takes it back (the directions it does not
+        see stay wide: the protection level says so)."""
+        if not turned or 2 * turned < of:
+            if self.monitor.is_active("ins-velocity"):
+                self.monitor.clear("ins-velocity", ekf.time,
+                                   "INS velocity agrees with the carrier phase again")
+            return
+        interval = ekf.since_clone
+        assert interval is not None  # (rows were taken: they span it)
+        ekf.inflate(position_m=speed * interval, velocity_mps=speed, attitude_rad=0.0,
+                    accel_bias=speed / interval)
+        self.monitor.raise_fault(
+            "ins-velocity", ekf.time, f"INS velocity up to {100 * speed:.0f} cm/s off the "
+            f"carrier phase of {turned} of {of} {what}: INS widened")
 
     def _check_velocity(self, fit: TdcpFit, ekf: ErrorStateEkf) -> None:
         """The satellites, agreeing among themselves, against the INS's predicted velocity:
@@ -280,7 +329,8 @@ class CarrierPhaseCoupling:
         self.monitor.raise_fault(
             "ins-velocity", ekf.time,
             f"INS velocity {100 * speed:.0f} cm/s off the carrier phase of {fit.satellites} "
-            "satellites that agree: INS taken back to it")
+            + ("satellites that agree" if fit.satellites >= MIN_FIT_SATELLITES else
+               "satellites (too few to check each other)") + ": INS taken back to it")
 
     def _check_attitude(self, sd_rows: Sequence[SdRow], ekf: ErrorStateEkf) -> None:
         """The single differences, agreeing among themselves, against the INS's attitude (the
@@ -416,6 +466,12 @@ class CarrierPhaseCoupling:
     def carrier_fresh(self, t: float) -> bool:
         """Carrier-phase velocity accepted within the last ``GNSS_STALE_S``."""
         return t - self.last_velocity_time <= GNSS_STALE_S
+
+    def velocity_held(self, t: float) -> bool:
+        """The carrier phase holds the whole velocity: fresh, and from at least as many
+        satellites as it has unknowns. With one to three, the directions they do not see
+        are the INS's alone — a track to weigh by its own σ, not millimetres."""
+        return self.carrier_fresh(t) and self.n_sats >= FIT_UNKNOWNS
 
 
 def _gate_text(ekf: ErrorStateEkf) -> str:

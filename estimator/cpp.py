@@ -473,7 +473,8 @@ class ReceiverVelocity:
     residual_rms_mps: float
 
 
-MIN_FIT_SATELLITES = 6  # an epoch's own fit needs a few satellites beyond its 4 unknowns
+MIN_FIT_SATELLITES = 6  # the fit's own outlier test and scatter need a few beyond its 4 unknowns
+FIT_UNKNOWNS = 4  # velocity and clock drift
 
 
 @dataclass(frozen=True)
@@ -511,26 +512,36 @@ def robust_lsq(A: np.ndarray, y: np.ndarray, min_rows: int
 
 
 def tdcp_fit(sats: Sequence[str], innovation: np.ndarray, los: np.ndarray,
-             sigma: np.ndarray) -> TdcpFit | None:
+             sigma: np.ndarray, unknown_scatter: float = 0.0) -> TdcpFit | None:
     """Fit one epoch's η innovations (one per row: its satellite, ``los`` and phase-noise
     ``sigma``; averaged over a satellite's antennas) with a common velocity and clock
-    correction (``robust_lsq``). None with fewer than ``MIN_FIT_SATELLITES``.
+    correction. None with fewer satellites than the 4 unknowns.
 
     The correction is what the satellites, agreeing among themselves, say the INS's
     prediction is off by. The scatter is the rate error common to a satellite's antennas
     beyond the phase noise: the atmosphere and the signal (satellite clock, scintillation)
     change the range of antennas 10 cm apart alike and come in bursts — a fixed σ then
     weighs a burst's satellites four times over and lets them pull the velocity until the
-    gate locks the rest out."""
+    gate locks the rest out. With ``MIN_FIT_SATELLITES`` or more the fit is robust
+    (``robust_lsq``: an outlier dropped, the scatter measured); with fewer (4–5: a street of
+    buildings) it is plain, its scatter ``unknown_scatter`` (the filter's configured rate σ)
+    and it cannot tell a bad satellite from a bad INS — still the INS must be checked, or
+    its rows are gated out one by one while it runs away."""
     names = sorted(set(sats))
+    if len(names) < FIT_UNKNOWNS:
+        return None
     sats = np.asarray(sats)
     y = np.array([np.mean(innovation[sats == s]) for s in names])
     A = np.array([[*np.mean(los[sats == s], axis=0), 1.0] for s in names]).reshape(-1, 4)
+    noise = float(np.mean([np.mean(sigma[sats == s] ** 2) / np.sum(sats == s) for s in names]))
+    if len(names) < MIN_FIT_SATELLITES:
+        x = np.linalg.lstsq(A, y, rcond=None)[0]
+        var = noise + unknown_scatter**2
+        return TdcpFit(x, np.linalg.pinv(A.T @ A) * var, unknown_scatter, len(names))
     fit = robust_lsq(A, y, MIN_FIT_SATELLITES)
     if fit is None:
         return None
     x, inv, spread, keep = fit
-    noise = float(np.mean([np.mean(sigma[sats == s] ** 2) / np.sum(sats == s) for s in names]))
     return TdcpFit(x, inv * max(spread**2, noise), math.sqrt(max(spread**2 - noise, 0.0)),
                    int(keep.sum()))
 

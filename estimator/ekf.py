@@ -538,8 +538,7 @@ class ErrorStateEkf:
         for v in velocities:
             if not self.interval_ok(v.interval):
                 continue
-            disp, J = self._displacement_rows(v.antenna)
-            y = np.asarray(v.velocity_ned, float) - disp / v.interval
+            y, J = self.velocity_innovation(v)
             r = self._update("velocity", y, -J / v.interval, np.asarray(v.covariance), False)
             out.rows += r.rows
             out.accepted += r.accepted
@@ -547,6 +546,12 @@ class ErrorStateEkf:
             out.nis += r.nis
             out.dof += r.dof
         return out
+
+    def velocity_innovation(self, v: VelocityInput) -> tuple[np.ndarray, np.ndarray]:
+        """A loose TDCP velocity less the INS's mean velocity of its antenna over the
+        interval (m/s), and the displacement's Jacobian (what ``update_velocity`` gates)."""
+        disp, J = self._displacement_rows(v.antenna)
+        return np.asarray(v.velocity_ned, float) - disp / v.interval, J
 
     def predict_single_difference(self, ref: int, other: int, los_ned: np.ndarray,
                                   sigma_m: float) -> tuple[float, float]:

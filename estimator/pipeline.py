@@ -395,7 +395,7 @@ class Fusion:
             self._timer.add("gnss_update", _time.perf_counter() - t0)
         else:
             self.coupling.update(item.payload, self.ekf,  # type: ignore[arg-type]
-                                 self._timer.add, self.carrier.carrier_fresh(self.ekf.time))
+                                 self._timer.add, self.carrier.velocity_held(self.ekf.time))
             self._timer.add("vo_update", _time.perf_counter() - t0)
 
     # -------------------------------------------------------------------- INS start

@@ -294,7 +294,8 @@ def _figures() -> list[Figure]:
     for n in (5, 4, 3, 2, 1, 0):
         for mode in ("loose", "tight"):
             out += [Figure(f"satellite_subsets[n={n}].{mode}.horizontal_std_m", "high"),
-                    Figure(f"satellite_subsets[n={n}].{mode}.heading_std_deg", "high")]
+                    Figure(f"satellite_subsets[n={n}].{mode}.heading_std_deg", "high"),
+                    Figure(f"satellite_subsets[n={n}].{mode}.misleading_epochs", "high")]
     out += [Figure("clock_drift.common.horizontal_std_m", "high"),
             Figure("clock_drift.separate.horizontal_std_m", "high"),
             Figure("single_satellite_heading.worst_all_six_heading_std_deg", "high"),

@@ -46,6 +46,9 @@ class SubsetFigures:
     heading_std_deg: float | None
     horizontal_max_m: float | None
     heading_rms_deg: float | None
+    # trusted states whose error was beyond their protection level (as ``IntegrityReport``):
+    # few satellites must not make the fusion confident and wrong
+    misleading_epochs: int | None = None
 
 
 @dataclass

@@ -232,9 +232,10 @@ def _tables18_21(ev: Evaluated, opt: ReportOptions, t0: float, n_window: int) ->
                           lean_options(opt, opt.init_s, satellites_keep=sats,
                                        tightly_coupled=tight))
             sc = trajectory_scores(run_errors(run, rs.rec.reference, rs.start, t0), n_window)
+            ig = integrity_scores(rs.rec, run, t0, rs.end)
             figures[mode] = SubsetFigures(sc.velocity_std_mps, sc.horizontal_std_m,
                                           sc.heading_std_deg, sc.horizontal_max_m,
-                                          sc.heading_rms_deg)
+                                          sc.heading_rms_deg, ig.misleading_epochs)
         report.satellite_subsets.append(SubsetRow(n, sats, finite(dops[n]), **figures))
     report.satellites_tracked = {s: info[s] for s in sorted(info)}
     four = chosen.get(4)

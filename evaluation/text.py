@@ -72,7 +72,7 @@ def _tables18_20(report: ReplayReport) -> list[str]:
                  "(loose | tight coupling of the velocity)",
              f"  {'n':>2} {'satellites':<24} {'HDOP':>6}  {'vel σ (m/s)':>15}  "
              f"{'traj σ (m)':>15}  {'traj max (m)':>15}  {'heading σ (deg)':>15}  "
-             f"{'hdg rms (deg)':>15}"]
+             f"{'hdg rms (deg)':>15}  {'misleading':>11}"]
     for s in report.satellite_subsets:
         lo, ti = s.loose, s.tight
         lines.append(
@@ -82,7 +82,8 @@ def _tables18_20(report: ReplayReport) -> list[str]:
             f"{f(lo.horizontal_std_m, '7.3f')}|{f(ti.horizontal_std_m, '<7.3f')}  "
             f"{f(lo.horizontal_max_m, '7.3f')}|{f(ti.horizontal_max_m, '<7.3f')}  "
             f"{f(lo.heading_std_deg, '7.3f')}|{f(ti.heading_std_deg, '<7.3f')}  "
-            f"{f(lo.heading_rms_deg, '7.3f')}|{f(ti.heading_rms_deg, '<7.3f')}")
+            f"{f(lo.heading_rms_deg, '7.3f')}|{f(ti.heading_rms_deg, '<7.3f')}  "
+            f"{f(lo.misleading_epochs, '5d')}|{f(ti.misleading_epochs, '<5d')}")
     return lines
 
 

@@ -126,7 +126,13 @@ def test_an_epochs_own_tdcp_fit_on_real_receivers(real):
         assert m.scatter == pytest.approx(q.scatter, abs=1e-9)
         np.testing.assert_allclose(m.correction[:3] - q.correction[:3], wrong, atol=1e-9)
         assert np.all(np.sqrt(np.diag(q.covariance)[:3]) < 0.01)  # mm/s-level agreement
-    assert cpp.tdcp_fit(sats[:5], y[:5], u[:5], sigma[:5]) is None  # too few satellites
+    # Five satellites (a street of buildings): a plain fit, the scatter it cannot measure
+    # taken as given, the correction still the INS's error; three: none
+    few = cpp.tdcp_fit(sats[:5], (y + u @ wrong)[:5], u[:5], sigma[:5], unknown_scatter=5e-4)
+    assert few.satellites == 5 and few.scatter == 5e-4
+    np.testing.assert_allclose(few.correction[:3], wrong, atol=0.01)
+    assert np.all(np.diag(few.covariance) > 5e-4**2)
+    assert cpp.tdcp_fit(sats[:3], y[:3], u[:3], sigma[:3]) is None
 
 
 def _per_satellite_velocity(rows, C_el: np.ndarray, rate_sigma: float) -> np.ndarray:

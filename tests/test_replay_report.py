@@ -53,7 +53,8 @@ def test_json_shape_is_stable_and_strict(report: dict) -> None:
         assert {"n_satellites", "satellites", "loose", "tight"} <= set(s)
         assert len(s["satellites"]) == s["n_satellites"]
         for mode in ("loose", "tight"):
-            assert {"velocity_std_mps", "horizontal_std_m", "heading_std_deg"} <= set(s[mode])
+            assert {"velocity_std_mps", "horizontal_std_m", "heading_std_deg",
+                    "misleading_epochs"} <= set(s[mode])
     assert {"common", "separate"} <= set(doc["clock_drift"])
     assert {"bands", "median_m", "p90_m"} <= set(doc["structure"])
     assert len(doc["structure"]["bands"]) == 4
@@ -83,6 +84,8 @@ def test_satellite_subsets_and_clock_drift(report: dict) -> None:
     # receiver), so the tight trajectory is far better than dead reckoning.
     assert three["tight"]["horizontal_std_m"] < 0.5 * none["tight"]["horizontal_std_m"]
     assert three["tight"]["velocity_std_mps"] < three["loose"]["velocity_std_mps"]
+    # ... and neither is ever confident and wrong (scored as the main run's integrity)
+    assert three["tight"]["misleading_epochs"] == none["tight"]["misleading_epochs"] == 0
     cd = report["clock_drift"]
     assert len(set(cd["satellite_per_receiver"].values())) == 4
     assert cd["common"]["horizontal_std_m"] < 0.1
