@@ -83,8 +83,11 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
       (None when nothing closes);
     - σ of the bow and stern distance: the line's σ (offset at its middle, direction), the
       fused position's σ across the line and the heading's σ through the point's lever arm;
-      σ of the angle: the line's direction and the heading; σ of the time to contact: the
-      first point's distance σ over its closing speed.
+      σ of the approach speeds: the fused velocity's across the line (millimetres a second
+      on the carrier phase; decimetres once an INS fault has been found and the velocity
+      widened) and the rate of turn's through the lever arm; σ of the angle: the line's
+      direction and the heading; σ of the time to contact: the first point's distance σ and
+      closing-speed σ.
     """
     line = np.asarray(line_ne, dtype=float).reshape(2, 2)
     direction = line[1] - line[0]
@@ -103,27 +106,32 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     velocity = np.asarray(state.velocity_ned, dtype=float)[:2]
     r = float(state.rate_of_turn)
     pos_var = _plan_variance(state, normal)
+    vel_var = _plan_variance(state, normal, "velocity_cov")
     yaw_var = _yaw_variance(state)
+    rate_var = float(getattr(state, "rate_of_turn_sigma", 0.0) or 0.0) ** 2
 
-    def point(body_xy: np.ndarray) -> tuple[float, float, float]:
-        """distance, closing speed, σ of the distance of a hull point."""
+    def point(body_xy: np.ndarray) -> tuple[float, float, float, float]:
+        """distance, closing speed and their σ of a hull point."""
         lever = R @ body_xy
         p = centre + lever
         v_point = velocity + r * np.array([-lever[1], lever[0]])  # omega_down x lever (NE)
+        # the point's move across the line per radian of heading (and its speed per rad/s of
+        # rate of turn): a large ship's bow is 160 m out
         d_dpsi = float(np.dot(normal, np.array([-lever[1], lever[0]])))
         var = pos_var + yaw_var * d_dpsi ** 2 + (line_sigma_m or 0.0) ** 2 \
             + (np.radians(line_sigma_deg or 0.0) * float(np.dot(p - middle, direction))) ** 2
         return float(np.dot(p - line[0], normal)), float(-np.dot(v_point, normal)), \
-            float(np.sqrt(var))
+            float(np.sqrt(var)), float(np.sqrt(vel_var + rate_var * d_dpsi ** 2))
 
     out: dict[str, float | None] = {}
     x = outline_body[:, 0]
     for name, ends in (("bow", x >= x.max() - 0.01), ("stern", x <= x.min() + 0.01)):
         candidates = [point(b) for b in outline_body[ends]]
-        d, closing, sigma = min(candidates, key=lambda c: c[0])
+        d, closing, sigma, closing_sigma = min(candidates, key=lambda c: c[0])
         out[f"{name}_distance_m"] = d
         out[f"{name}_approach_mps"] = closing
         out[f"{name}_distance_sigma_m"] = sigma
+        out[f"{name}_approach_sigma_mps"] = closing_sigma
     heading = R[:, 0]
     along = direction if np.dot(direction, heading) >= 0 else -direction
     out["along_berth_mps"] = float(np.dot(velocity, along))
@@ -142,8 +150,10 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
         ttc = np.maximum(dist[moving], 0.0) / closing[moving]
         first = int(moving[np.argmin(ttc)])
         out["time_to_contact_s"] = float(ttc.min())
-        # the first point's distance σ over its closing speed (the speed's σ is mm/s)
-        out["time_to_contact_sigma_s"] = point(dense[first])[2] / float(closing[first])
+        # d / c: the first point's distance σ and its closing speed's, to first order
+        _, c, d_sigma, c_sigma = point(dense[first])
+        out["time_to_contact_sigma_s"] = float(np.hypot(d_sigma, out["time_to_contact_s"]
+                                                        * c_sigma)) / c
     out["nearest_distance_m"] = float(dist.min())
     return out
 
@@ -151,8 +161,9 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
 MIN_CLOSING_MPS = 0.005  # slower than this is not closing (no time to contact)
 
 
-def _plan_variance(state: Any, normal: np.ndarray) -> float:
-    cov = getattr(state, "position_cov", None)
+def _plan_variance(state: Any, normal: np.ndarray, which: str = "position_cov") -> float:
+    """The variance of the state's position (or velocity) along the horizontal ``normal``."""
+    cov = getattr(state, which, None)
     if cov is None:
         return 0.0
     P = np.asarray(cov, dtype=float)[:2, :2]

@@ -336,9 +336,12 @@ class Pose(BaseModel):
     euler_deg: Vec3 = Field(description="roll, pitch, yaw")
     heading_deg: float
     speed_mps: float
+    speed_std_mps: float = Field(description="1-σ of the speed over ground")
     course_deg: float | None
     rate_of_turn_dps: float
+    rate_of_turn_std_dps: float = Field(description="1-σ: the smoothed gyro noise and its bias")
     position_std_m: Vec3
+    velocity_std_mps: Vec3
     attitude_std_deg: Vec3
 
 
@@ -488,6 +491,9 @@ class BerthGeometry(BaseModel):
     bow_distance_sigma_m: float | None = Field(
         None, description="1-σ: the line's, the position's and the heading's")
     stern_distance_sigma_m: float | None = None
+    bow_approach_sigma_mps: float | None = Field(
+        None, description="1-σ: the fused velocity's across the line")
+    stern_approach_sigma_mps: float | None = None
     along_berth_mps: float | None = Field(
         None, description="speed along the line, positive the way the bow points along it")
     angle_deg: float | None = Field(
@@ -498,7 +504,7 @@ class BerthGeometry(BaseModel):
         None, description="until the first hull point reaches the line at the present closing "
                           "speeds; null when nothing closes")
     time_to_contact_sigma_s: float | None = Field(
-        None, description="1-σ: that point's distance σ over its closing speed")
+        None, description="1-σ: that point's distance σ and closing-speed σ")
     nearest_distance_m: float | None = Field(None, description="of the whole hull outline")
 
 

@@ -11,6 +11,7 @@ Numbers are rounded for the wire: pixels of lines and points to 0.1 px, plan coo
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -82,7 +83,12 @@ def pose_dict(state: Any, start_gpst: float) -> dict[str, Any]:
     v = np.asarray(state.velocity_ned, dtype=float)
     pos_cov = np.asarray(state.position_cov, dtype=float)
     att_cov = np.asarray(state.attitude_cov, dtype=float)
+    vel_cov = np.asarray(state.velocity_cov, dtype=float)
     speed = float(np.hypot(v[0], v[1]))
+    # the speed's σ along the track (at a standstill, the wider horizontal axis)
+    along = v[:2] / speed if speed > 1e-3 else None
+    speed_var = float(along @ vel_cov[:2, :2] @ along) if along is not None \
+        else float(np.linalg.eigvalsh(vel_cov[:2, :2])[-1])
     return {
         "t": round(float(state.time) - start_gpst, 6),
         "gpst": float(state.time),
@@ -93,10 +99,14 @@ def pose_dict(state: Any, start_gpst: float) -> dict[str, Any]:
         "euler_deg": _round(np.degrees(euler), 6),
         "heading_deg": round(float(np.degrees(euler[2]) % 360.0), 4),
         "speed_mps": round(speed, 4),
+        "speed_std_mps": round(math.sqrt(max(speed_var, 0.0)), 4),
         "course_deg": round(float(np.degrees(np.arctan2(v[1], v[0])) % 360.0), 3)
         if speed > 0.05 else None,
         "rate_of_turn_dps": round(float(np.degrees(state.rate_of_turn)), 4),
+        "rate_of_turn_std_dps": round(math.degrees(float(getattr(state, "rate_of_turn_sigma",
+                                                                 0.0))), 4),
         "position_std_m": _round(np.sqrt(np.clip(np.diag(pos_cov), 0.0, None)), 4),
+        "velocity_std_mps": _round(np.sqrt(np.clip(np.diag(vel_cov), 0.0, None)), 4),
         "attitude_std_deg": _round(np.degrees(np.sqrt(np.clip(np.diag(att_cov), 0.0, None))), 4),
     }
 

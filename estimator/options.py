@@ -66,8 +66,10 @@ class FusedState:
     euler: np.ndarray  # roll, pitch, yaw (rad)
     C_body_to_level: np.ndarray
     rate_of_turn: float  # yaw rate, rad/s
+    rate_of_turn_sigma: float  # its 1-σ, rad/s
     omega_body: np.ndarray  # body rate w.r.t. L, body axes, rad/s
     position_cov: np.ndarray  # (3,3) m²
+    velocity_cov: np.ndarray  # (3,3) (m/s)²
     attitude_cov: np.ndarray  # (3,3) rad² (small angles in L)
     status: FusionStatus
 

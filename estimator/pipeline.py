@@ -49,7 +49,7 @@ from .frames import (
     rotvec_to_dcm,
 )
 from .gnss_epochs import N_RECEIVERS, GnssFront
-from .ins import Ins, InsState, calibration_matrices
+from .ins import Ins, InsState, RateSmoother, calibration_matrices
 from .integrity import Alert, FrameCheck, IntegrityMonitor, checked_vo
 from .landmarks import LandmarkMap, SolvedViews
 from .options import FusedState, FusionOptions, FusionStatus, WorldOrigin
@@ -115,6 +115,7 @@ class Fusion:
         self._G, A = calibration_matrices(calibration.imu)
         self._last_raw: tuple[float, np.ndarray, np.ndarray] | None = None
         self._raw_mean: tuple[np.ndarray, np.ndarray] | None = None  # (gyro, accel) over ~3 s
+        self._rate = RateSmoother(self.cfg.gyro_arw)  # the outputs' angular rate
         self._pending: deque[_Pending] = deque()
         self._timer = _Timer()
         self.front = GnssFront(nav, opt, self.monitor)
@@ -149,6 +150,9 @@ class Fusion:
             if gap > self.options.integrity.imu_gap_s:
                 self._bridge_gap(t, gap)
             self._advance(t, gyro, accel)
+            assert self.ins is not None
+            self._rate.update(self.ins.omega_body, t - self._last_raw[0]
+                              if self._last_raw is not None else 0.0)
         self._last_raw = (t, gyro, accel)
         self._average(gyro, accel)
         self._timer.add("imu", _time.perf_counter() - t0)
@@ -230,7 +234,7 @@ class Fusion:
             return None
         ekf, ins = self.ekf, self.ins
         s = ekf.nominal
-        omega_ib = ins.omega_body
+        omega_ib = self._rate.out
         omega_lb = omega_ib - s.C_body_to_level.T @ ins.omega_ie
         C, r, v = s.C_body_to_level, s.position_ned, s.velocity_ned
         dt = 0.0 if at is None else float(at) - s.time
@@ -254,7 +258,12 @@ class Fusion:
                                                      math.degrees(llh[1]), llh[2]]),
             velocity_ned=velocity, euler=euler, C_body_to_level=C,
             rate_of_turn=float(yaw_rate), omega_body=omega_lb,
-            position_cov=P[ix.R, ix.R].copy(), attitude_cov=P[ix.E, ix.E].copy(),
+            # the smoothed rate's noise and lag, and the gyro bias' σ (about the body's down
+            # axis)
+            rate_of_turn_sigma=math.hypot(self._rate.sigma,
+                                          math.sqrt(max(float(P[ix.BG, ix.BG][2, 2]), 0.0))),
+            position_cov=P[ix.R, ix.R].copy(), velocity_cov=P[ix.V, ix.V].copy(),
+            attitude_cov=P[ix.E, ix.E].copy(),
             status=self.status())
 
     def status(self) -> FusionStatus:

@@ -10,7 +10,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import httpx
@@ -52,6 +52,7 @@ class _Fused:
     position_cov: np.ndarray
     attitude_cov: np.ndarray
     status: _Status
+    velocity_cov: np.ndarray = field(default_factory=lambda: np.eye(3) * 1e-6)
 
 
 class ReferenceEngine:

@@ -33,7 +33,8 @@ def make_state(position=(0.0, 0.0, 0.0), euler=(0.0, 0.0, 0.0), velocity=(0.0, 0
                            llh_deg=np.zeros(3), velocity_ned=np.array(velocity, dtype=float),
                            euler=e, C_body_to_level=euler_to_dcm(*e), rate_of_turn=rate,
                            omega_body=np.zeros(3), position_cov=np.eye(3) * 1e-4,
-                           attitude_cov=np.eye(3) * 1e-6, status=None)
+                           attitude_cov=np.eye(3) * 1e-6, velocity_cov=np.zeros((3, 3)),
+                           status=None)
 
 
 # ------------------------------------------------------------------------------ prediction
@@ -230,6 +231,21 @@ def test_berth_metrics_bow_stern_distance_and_approach_speed():
     state.rate_of_turn = -0.05
     m = berth_metrics(state, HULL, line)
     assert m["bow_approach_mps"] > 0.2 > m["stern_approach_mps"]
+    # the approach speeds' σ: the velocity's across the line (an INS fault found: 5 cm/s
+    # north, 1 cm/s east); it carries into the time to contact, ttc · σ_v / v
+    state.rate_of_turn = 0.0
+    state.velocity_cov = np.diag([0.05**2, 0.01**2, 0.0])
+    m = berth_metrics(state, HULL, line)
+    assert m["bow_approach_sigma_mps"] == pytest.approx(0.05)
+    assert m["stern_approach_sigma_mps"] == pytest.approx(0.05)
+    ttc = m["time_to_contact_s"]
+    assert m["time_to_contact_sigma_s"] == pytest.approx(
+        np.hypot(0.01, ttc * 0.05) / 0.2, rel=0.05)
+    # ... and the rate of turn's through the lever: the stem 3.5 m out, 1 mrad/s → 3.5 mm/s
+    state.velocity_cov = np.zeros((3, 3))
+    state.rate_of_turn_sigma = 0.001
+    m = berth_metrics(state, HULL, line)
+    assert m["bow_approach_sigma_mps"] == pytest.approx(0.0035)
 
 
 def test_berth_metrics_at_an_angle_take_the_ends_not_midships():

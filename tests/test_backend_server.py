@@ -186,6 +186,8 @@ def test_pose_history_trajectory_structure_prediction_report(live: Live, replaye
         base = f"/api/sessions/{sid}"
         now = client.get(f"{base}/pose").json()
         assert now["status"]["phase"] in ("fused", "degraded", "aligning")
+        # the speed carries its σ (the carrier phase's: mm/s), as the position does
+        assert 0.0 < now["speed_std_mps"] < 0.05 and len(now["velocity_std_mps"]) == 3
         past = client.get(f"{base}/pose", params={"t": 5.0}).json()
         assert 4.85 <= past["t"] <= 5.0 + 1e-9
         traj = client.get(f"{base}/trajectory").json()

@@ -73,7 +73,11 @@ export class Panel {
     // positive = closing the berth; the arrow says which way without reading a sign
     const arrow = Math.abs(cms) < 0.5 ? "" : cms > 0 ? "▼" : "▲";
     const dir = Math.abs(cms) < 0.5 ? "steady" : cms > 0 ? "closing" : "opening";
-    s.innerHTML = `${arrow}${Math.abs(cms).toFixed(0)}<span class="unit">cm/s</span>`
+    // its σ once it reaches the figure's last digit (the carrier phase holds it to mm/s;
+    // an INS fault found widens it to decimetres a second)
+    const sigmaCms = (berth?.[`${name}_approach_sigma_mps`] ?? 0) * 100;
+    const pm = sigmaCms >= 0.5 ? ` ±${sigmaCms.toFixed(0)}` : "";
+    s.innerHTML = `${arrow}${Math.abs(cms).toFixed(0)}<span class="unit">cm/s${pm}</span>`
       + `<span class="dir">${dir}</span>`;
     s.title = cms > 0 ? "closing the berth line" : "opening from the berth line";
     return level || null;
@@ -111,7 +115,8 @@ export class Panel {
     }
     set("hdg", `${pose.heading_deg.toFixed(1)}<span class="unit">°</span>`);
     set("sog", `${(pose.speed_mps * KNOTS_PER_MPS).toFixed(2)}<span class="unit">kn</span>`
-      + ` <span class="unit">${pose.speed_mps.toFixed(2)} m/s</span>`);
+      + ` <span class="unit">${pose.speed_mps.toFixed(2)}${pose.speed_std_mps >= 0.005
+        ? ` ±${pose.speed_std_mps.toFixed(2)}` : ""} m/s</span>`);
     // ROT in degrees per minute, as on a ship's ROT indicator; positive = to starboard
     const rot = pose.rate_of_turn_dps * 60;
     const side = Math.abs(rot) < 0.5 ? "" : rot > 0 ? " S" : " P";
