@@ -24,6 +24,7 @@ from estimator.tracking import (
     DesignatedTarget,
     TargetParams,
     TargetState,
+    depth_edge,
     point_on_ray,
     structure_point_at,
 )
@@ -70,6 +71,9 @@ class Designation:
     anchor_ids: np.ndarray  # structure point ids under the click (empty for water-plane)
     anchor_mean: np.ndarray | None  # their mean position
     water_down_m: float | None = None  # the water plane's down (m) when it is known
+    # (nearest, farthest) range of the structure inside the click's template when it straddles
+    # a depth edge (``estimator.tracking.depth_edge``)
+    edge_span_m: tuple[float, float] | None = None
 
 
 def camera_view(state: Any, camera: CameraCalibration) -> CameraView:
@@ -100,8 +104,10 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
                                    pose.position_ned, ray, focal)
         if found is not None:
             point, cov, near = found
+            edge = depth_edge(structure.points, structure.sigma, uv, np.array([u, v]),
+                              pose.position_ned, target_window(projector.width) // 2)
             return Designation(point, cov, "structure", np.asarray(structure.ids)[near],
-                               structure.points[near].mean(axis=0), water_down_m)
+                               structure.points[near].mean(axis=0), water_down_m, edge)
     hit = None if water_down_m is None else \
         water_plane_point(pose.position_ned, ray, water_down_m)
     if hit is None:
@@ -137,7 +143,7 @@ class FollowedTarget:
             projector.camera, image, np.asarray(uv, float), designation.position_ned,
             designation.covariance, view, params=TargetParams(window=target_window(
                 projector.width)), seed=index, earlier_frames=earlier_frames, views=views,
-            water_down_m=designation.water_down_m)
+            water_down_m=designation.water_down_m, edge_span_m=designation.edge_span_m)
         self.frame_index = index  # last frame followed
         self.refreshed_t = -math.inf  # structure time of the last refresh
 

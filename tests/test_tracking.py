@@ -815,6 +815,49 @@ def test_a_click_the_structure_does_not_place_is_placed_by_its_own_views(along_p
         (err, state.distance_sigma_m)
 
 
+def test_a_click_on_a_depth_edge_reads_the_edge_in_its_sigma(along_path):
+    """A click on the quay's coping, buildings 2.5 times as far just above it: the template
+    straddles the edge and its track slides as one, between the two surfaces, agreeing with
+    itself (an unseen seed's coping clicks 21 m away read 38–73 m at ±1.2–2.4 m). The
+    distance the officer reads carries the edge: either surface within 2σ. A click with one
+    surface in its template is left as it was."""
+    from engine.camera import CameraPose, Projector
+    from engine.targets import FollowedTarget, Structure, designate
+
+    seq, point = along_path
+    times = T0 + 0.1 * np.arange(N_FRAMES)
+    truth = seq.truth(point)
+    C, p = seq.poses[-1]
+    projector = Projector(seq.cam)
+    view = CameraView(times[-1], C, p)
+    pose = CameraPose(C, p)
+    u, v = truth[-1]
+    d_true = float(np.linalg.norm(point - p))
+
+    def at(du: float, dv: float, r: float) -> np.ndarray:
+        ray = projector.pixel_ray(pose, u + du, v + dv)
+        return p + r * ray / np.linalg.norm(ray)
+
+    quay = [at(-6, 3, d_true), at(5, 4, d_true * 1.02), at(2, -3, d_true * 0.99)]
+    behind = [at(-4, -9, 2.5 * d_true), at(7, -11, 2.6 * d_true)]
+    for pts, edge in ((quay, False), (quay + behind, True)):
+        pts = np.array(pts)
+        structure = Structure(times[-1], pts, 0.01 * np.linalg.norm(pts - p, axis=1),
+                              np.arange(len(pts)))
+        des = designate(projector, view, u, v, structure, None)
+        assert des.method == "structure" and (des.edge_span_m is not None) == edge
+        tgt = FollowedTarget(projector, des, seq.images[-1], (u, v), view, N_FRAMES - 1,
+                             [], None)
+        d, sigma = tgt.tracker.distance(view)
+        if edge:
+            near, far = des.edge_span_m
+            assert near == pytest.approx(0.99 * d_true, rel=1e-6)
+            assert far == pytest.approx(2.6 * d_true, rel=1e-6)
+            assert sigma >= 0.5 * (far - near) and abs(far - d) <= 2.0 * sigma
+        else:
+            assert sigma < 0.1 * d_true and abs(d - d_true) < 2.0 * sigma
+
+
 def test_excess_disagreement_is_what_the_covariances_do_not_explain():
     """Two estimates of one point: agreeing within their σ, nothing; 1 m apart with 10 cm
     σ each, the excess (1 − 2·0.01 m²) along the line between them, none across it."""
