@@ -27,6 +27,7 @@ from estimator.tracking import (
     depth_edge,
     point_on_ray,
     structure_point_at,
+    under_water,
 )
 
 from .camera import CameraPose, Projector, camera_pose, water_plane_point
@@ -102,7 +103,9 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
         _visible, uv = projector.project_points(pose, structure.points)
         found = structure_point_at(structure.points, structure.sigma, uv, np.array([u, v]),
                                    pose.position_ned, ray, focal)
-        if found is not None:
+        # structure points under the water are a reflection's on calm water: the pixel
+        # shows the water, placed by its plane below
+        if found is not None and not under_water(found[0], found[1], water_down_m):
             point, cov, near = found
             edge = depth_edge(structure.points, structure.sigma, uv, np.array([u, v]),
                               pose.position_ned, target_window(projector.width) // 2)

@@ -752,6 +752,14 @@ def depth_edge(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarra
     return (near, far) if far > EDGE_RANGE_RATIO * near else None
 
 
+def under_water(X: np.ndarray, P: np.ndarray, water_down_m: float | None) -> bool:
+    """Whether the point ``X`` (covariance ``P``) lies under the water plane (its down,
+    None: unknown) by more than 3σ: nothing the ship can run into is there — a mirror
+    image on calm water, or a ray that missed what it was meant to hit."""
+    return water_down_m is not None and \
+        float(X[2]) - water_down_m > 3.0 * math.sqrt(max(float(P[2, 2]), 0.0))
+
+
 class _SeenViews:
     """A designated target's tracked views, in time order: time, undistorted normalised
     pixel, the seconds the track had gone unanchored by then (``DesignatedTarget.unanchored_s``)
@@ -1104,10 +1112,7 @@ class DesignatedTarget:
         return n
 
     def _under_water(self, X: np.ndarray, P: np.ndarray) -> bool:
-        """Whether the point ``X`` (covariance ``P``) lies under the water plane by more
-        than 3σ: nothing the ship can run into is there."""
-        return self.water_down_m is not None and \
-            X[2] - self.water_down_m > 3.0 * math.sqrt(max(P[2, 2], 0.0))
+        return under_water(X, P, self.water_down_m)
 
     def ray_variance(self) -> np.ndarray:
         """(len(seen),): each view's angular variance (normalised units²) — the tracker's
