@@ -62,10 +62,19 @@ def get_session_status(session: SessionDep) -> SessionStatus:
     return _status(session)
 
 
-@router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT, responses=errors(404),
+@router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT,
+               responses={**errors(404), 202: {"description": "deleted once unwatched"}},
                summary="Stop and delete a session")
-def delete_session(session: SessionDep, manager: ManagerDep) -> Response:
-    manager.delete(session.id)
+def delete_session(session: SessionDep, manager: ManagerDep,
+                   when_unwatched: Annotated[bool, Query(
+                       description="only once no client watches it (202 while one does): "
+                                   "what a closing page asks, so that a session another "
+                                   "tab joined, and its locked targets, stay")] = False
+                   ) -> Response:
+    if when_unwatched and not manager.delete_when_unwatched(session.id):
+        return Response(status_code=status.HTTP_202_ACCEPTED)
+    if not when_unwatched:
+        manager.delete(session.id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

@@ -130,6 +130,9 @@ class Session:
         # When the last client left (monotonic s); None while watched. A session nobody has
         # watched for a while (a browser that crashed) may be reclaimed by the manager.
         self.unwatched_since: float | None = time.monotonic()
+        # Called once the last client has gone: the page that opened the session asked for
+        # it to go with its watchers (``SessionManager.delete_when_unwatched``).
+        self.on_unwatched: Callable[[], None] | None = None
         # The last frame played to clients (or that would have been, unwatched): what a client
         # joining now must see, even while paused.
         self._current_frame: tuple[FrameResult, Any | None, Any | None] | None = None
@@ -256,8 +259,16 @@ class Session:
     def unsubscribe(self, subscriber: Subscriber) -> None:
         with self.lock:
             self._subscribers.discard(subscriber)
-            if not self._subscribers and not self.live:  # the ship's session stays
+            gone = not self._subscribers and not self.live  # the ship's session stays
+            if gone:
                 self.unwatched_since = time.monotonic()
+            then = self.on_unwatched if gone else None
+        if then is not None:
+            then()
+
+    def watched(self) -> bool:
+        with self.lock:
+            return bool(self._subscribers)
 
     def redraw_if_paused(self) -> None:
         """While paused no frame flows: re-send the frame on screen so that a new target or
@@ -659,6 +670,25 @@ class SessionManager:
         if session is None:
             raise NotFound(f"no session {session_id!r} (deleted, reclaimed or never created)")
         self._close(session)
+
+    def delete_when_unwatched(self, session_id: str) -> bool:
+        """Delete the session now if no client watches it (True), else once the last one has
+        gone: a page closing (or reloading) must not take a session another tab joined —
+        and the targets locked in it — with it."""
+        session = self.get(session_id)
+        if session.live:
+            return False  # the ship's session stays
+        session.on_unwatched = lambda: self._delete_quietly(session_id)
+        if session.watched():
+            return False
+        self._delete_quietly(session_id)
+        return True
+
+    def _delete_quietly(self, session_id: str) -> None:
+        try:
+            self.delete(session_id)
+        except NotFound:
+            pass  # deleted meanwhile
 
     def _close(self, session: Session) -> None:
         session.close()

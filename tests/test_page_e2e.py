@@ -748,6 +748,38 @@ def test_speed_and_a_second_screen(page, browser, server: str) -> None:
     assert _get_json(f"{server}/api/sessions/{sid}")["id"] == sid
 
 
+def test_reloading_the_first_screen_keeps_the_session_a_second_one_joined(
+        page, browser, server: str) -> None:
+    """The page that opened a session deletes it as it closes, to free the server — but a
+    second screen that joined it (with its locked targets) keeps it: reloading the first
+    screen told the second "Session closed" and took its targets (a user trial). The
+    session goes once its last watcher has."""
+    wait_frame(page)
+    sid = page.evaluate("() => window.berthing.session.id")
+    second = _open_page(browser, server, 1280, 800, f"?session={sid}")
+    try:
+        wait_frame(second)
+        page.reload()
+        wait_frame(page)
+        assert page.evaluate("() => window.berthing.session.id") != sid  # a session of its own
+        assert _get_json(f"{server}/api/sessions/{sid}")["id"] == sid
+        t0 = second.evaluate("() => window.berthing.frame.t")
+        _wait(second, f"!!f && f.t > {t0} + 0.5", 10)  # still playing on the second screen
+        assert not second.errors
+    finally:
+        second.close()
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:  # the last watcher gone: the session goes
+        try:
+            _get_json(f"{server}/api/sessions/{sid}")
+        except urllib.error.HTTPError as exc:
+            assert exc.code == 404
+            break
+        time.sleep(0.2)
+    else:
+        raise AssertionError("the session outlived its last watcher")
+
+
 CONTROL_TOKEN, VIEW_TOKEN = "control-token-for-the-page-test", "view-token-for-the-page-test"
 
 

@@ -69,9 +69,10 @@ export const api = {
   session: (id) => request("GET", `/api/sessions/${id}`),
   sessions: () => request("GET", "/api/sessions"),
   deleteSession: (id) =>
-    // keepalive: also sent while the page unloads
-    fetch(`/api/sessions/${id}`, { method: "DELETE", keepalive: true, headers: authHeaders() })
-      .catch(() => {}),
+    // keepalive: also sent while the page unloads; once unwatched: another tab may have
+    // joined the session (and locked targets in it)
+    fetch(`/api/sessions/${id}?when_unwatched=true`,
+      { method: "DELETE", keepalive: true, headers: authHeaders() }).catch(() => {}),
   control: (id, body) => request("POST", `/api/sessions/${id}/control`, body),
   addTarget: (id, body) => request("POST", `/api/sessions/${id}/targets`, body),
   deleteTarget: (id, targetId) => request("DELETE", `/api/sessions/${id}/targets/${targetId}`),
