@@ -101,7 +101,8 @@ def create_target(body: TargetCreate, session: SessionDep) -> TargetOut:
     these views in the attitudes the port-structure window solved for them (``views``), at
     once and about once a second after. ``status`` says whether it is locked in the current
     frame (``lost`` when occluded, out of the image or not found again where its 3-D point
-    projects)."""
+    projects). 409 while the replay seeks (the frame on screen is one it is leaving) and
+    when a target already measures that pixel (within 3 px) of that frame."""
     frame_t = None if body.frame_time == "current" else float(body.frame_time)
     target = session.designate(frame_t, body.u, body.v, body.label)
     with session.lock:

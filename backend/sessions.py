@@ -445,7 +445,11 @@ class Session:
     def designate(self, frame_t: float | None, u: float, v: float, label: str | None
                   ) -> Target:
         """A designated target at pixel (u, v) of the frame at ``frame_t`` (None: the
-        current one), tracked from there on (``targets.TargetBook.designate``)."""
+        current one), tracked from there on (``targets.TargetBook.designate``). Not while
+        seeking: the frame on screen is then one the replay is leaving (a user trial's click
+        during a seek was designated on the 22.9 s frame at 74.2 s, 10 m off)."""
+        if self.replayer.state is ReplayState.SEEKING:
+            raise Conflict("the replay is seeking: designate on the frame it stops at")
         state = self.current_state() if frame_t is None else self.history.frame_state(frame_t)
         index = self._frame_index(float(state.time))
         with self.lock:

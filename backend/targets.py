@@ -26,13 +26,16 @@ from engine.targets import (
 )
 from recordings.format import Recording
 
-from .errors import NotFound, Unprocessable
+from .errors import Conflict, NotFound, Unprocessable
 from .geometry import hull_outline_ne
 from .overlay import TargetInput, target_readout
 
 log = logging.getLogger(__name__)
 
 Frame = tuple[int, float, np.ndarray]  # index, gpst, BGR image
+# A click this close (px) to a target's on the same frame is that target again (a double
+# click: a user trial's 12 clicks in 1.3 s made 12 identical targets, labels piled up).
+SAME_CLICK_PX = 3.0
 
 
 @dataclass
@@ -90,6 +93,13 @@ class TargetBook:
         if not (-0.5 <= u <= p.width - 0.5 and -0.5 <= v <= p.height - 0.5):
             raise Unprocessable(f"pixel ({u:g}, {v:g}) is outside the {p.width}x{p.height} "
                                 "image")
+        with self.lock:
+            same = next((t for t in self._targets.values()
+                         if abs(t.frame_gpst - float(state.time)) < 1e-3
+                         and math.hypot(t.uv[0] - u, t.uv[1] - v) <= SAME_CLICK_PX), None)
+        if same is not None:  # a double click, or the same request again
+            raise Conflict(f"{same.id} already measures pixel ({same.uv[0]:g}, "
+                           f"{same.uv[1]:g}) of this frame")
         view = camera_view(state, self.rec.calibration.camera)
         if water_down_m is not None and self.on_own_hull(state, view, u, v, water_down_m):
             raise Unprocessable(f"pixel ({u:g}, {v:g}) is on the ship herself (her deck or "

@@ -241,6 +241,10 @@ def test_designate_targets_and_berth_line(live: Live, replayed: dict):
         # tracked back through the frames before the click and triangulated at once in the
         # views the structure window solved (the real engine's)
         assert quay["views"] >= 5, quay  # 9-40 on the seeds tried: refined, not the click alone
+        # the same pixel of the same frame again (a double click) is that target, said so
+        again = client.post(f"{base}/targets", json={"frame_time": last["t"], "u": u + 1.0,
+                                                     "v": v - 1.0})
+        assert again.status_code == 409 and quay["id"] in again.json()["detail"]
         # the bottom middle of the picture is the boat's own foredeck: nothing to measure
         deck = client.post(f"{base}/targets", json={"u": 480, "v": 590})
         assert deck.status_code == 422 and "on the ship herself" in deck.json()["detail"]
