@@ -171,8 +171,12 @@ class TargetTracker:
         size = np.array(gray.shape[::-1], float)
         p = np.asarray(uv, float).reshape(2)
         if not self._inside(p, size):
-            raise ValueError(f"point ({p[0]:.1f}, {p[1]:.1f}) is not inside the "
-                             f"{int(size[0])}x{int(size[1])} image")
+            where = f"{int(size[0])}x{int(size[1])} image"
+            if np.all(p >= -0.5) and np.all(p <= size - 0.5):
+                m = self.params.edge_margin_px + 0.5 * max(self.window)
+                raise ValueError(f"point ({p[0]:.1f}, {p[1]:.1f}) is within {m:.0f} px of the "
+                                 f"{where}'s edge: no room for its template there")
+            raise ValueError(f"point ({p[0]:.1f}, {p[1]:.1f}) is not inside the {where}")
         self.template = _crop(gray, p, self.window)
         aw = int(round(self.params.anchor_size * self.window[0])) | 1
         ah = int(round(self.params.anchor_size * self.window[1])) | 1

@@ -211,6 +211,9 @@ def test_init_outside_the_image_is_refused(along_path):
     seq, _ = along_path
     with pytest.raises(ValueError, match="not inside"):
         TargetTracker().init(seq.images[0], (-5.0, 10.0))
+    # inside, but too near the edge for the template: said so, not "outside" (a user trial)
+    with pytest.raises(ValueError, match=r"within \d+ px of the .* edge: no room"):
+        TargetTracker().init(seq.images[0], (4.2, 236.8))
     with pytest.raises(ValueError, match="unknown tracking method"):
         TargetTracker(method="kalman")
 
