@@ -1030,6 +1030,31 @@ def test_layout_1280x800(browser, server: str) -> None:
         _close(pg, server)
 
 
+def test_layout_on_a_phone(browser, server: str) -> None:
+    """At 390x844 (a phone upright) the page is one column that scrolls: nothing wider than
+    the screen, every read-out and control reachable (a user trial found the two-column
+    page 1147 px wide, the integrity chip off-screen and the targets over the controls)."""
+    pg = _open_page(browser, server, 390, 844)
+    try:
+        wait_frame(pg)
+        pg.wait_for_timeout(500)
+        assert pg.evaluate("() => document.scrollingElement.scrollWidth") <= 390
+        boxes = {}
+        for sel in ("#video", "#st-integrity", "#st-phase", "#play", "#seek", "#speed",
+                    "#birdseye", "#bow-dist", "#hdg", "#targets", "#theme"):
+            pg.locator(sel).scroll_into_view_if_needed()
+            box = pg.locator(sel).bounding_box()
+            assert box and box["width"] > 0 and box["height"] > 0, sel
+            boxes[sel] = box
+            page_x = box["x"] + pg.evaluate("() => window.scrollX")
+            assert page_x >= 0 and page_x + box["width"] <= 390 + 1, (sel, box)
+        video = boxes["#video"]
+        assert video["width"] >= 380, "the video takes the screen's width"
+        shot(pg, "10_layout_phone")
+    finally:
+        _close(pg, server)
+
+
 # ------------------------------------------------- the bundled recording: the quay foot truth
 
 DEFAULT_RECORDING = ROOT / "recordings" / "default"
