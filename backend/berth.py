@@ -79,6 +79,16 @@ class BerthLine:
     sigma_deg: float | None = None  # 1-σ of its direction
     support: int = 0  # structure points the face was fitted to
     note: str = ""
+    # moved by the officer since it was set (m away from the ship, deg clockwise): the σ is
+    # still the fit's, the nudge exact; the page says the line is no longer the fit alone
+    nudged_m: float = 0.0
+    nudged_deg: float = 0.0
+
+    def describe(self) -> dict[str, Any]:
+        """What the line is, as the API and the frames give it (besides where it is)."""
+        return {"source": self.source, "method": self.method, "support_points": self.support,
+                "note": self.note, "sigma_m": _r(self.sigma_m), "sigma_deg": _r(self.sigma_deg),
+                "nudged_m": _r(self.nudged_m), "nudged_deg": _r(self.nudged_deg)}
 
 
 @dataclass(frozen=True)
@@ -491,7 +501,9 @@ class Berth:
         R = heading_rotation(np.radians(rotate_deg))
         moved = (world - centre) @ R.T + centre + offset_m * normal
         return self._set(replace(line, line_ne=moved, frame="world",
-                                 source=line.source if line.frame == "world" else "ned"))
+                                 source=line.source if line.frame == "world" else "ned",
+                                 nudged_m=line.nudged_m + offset_m,
+                                 nudged_deg=line.nudged_deg + rotate_deg))
 
     def clear(self) -> None:
         with self.lock:
@@ -525,12 +537,11 @@ class Berth:
             line = self.line
         out: dict[str, Any] = {"line_ne": None, "source": None, "method": None, "t": None,
                                "sigma_m": None, "sigma_deg": None, "support_points": 0,
-                               "note": ""}
+                               "note": "", "nudged_m": 0.0, "nudged_deg": 0.0}
         out.update(dict.fromkeys(METRIC_KEYS))
         if line is None:
             return out
-        out.update(source=line.source, method=line.method, support_points=line.support,
-                   note=line.note, sigma_m=_r(line.sigma_m), sigma_deg=_r(line.sigma_deg))
+        out.update(line.describe())
         world = self.world(state if state is not None else placed_by)
         if world is not None:
             out["line_ne"] = world.round(3).tolist()

@@ -522,6 +522,10 @@ class BerthLineStatus(BerthGeometry):
     sigma_deg: float | None = Field(None, description="1-σ of its direction")
     support_points: int = Field(0, description="structure points the line is fitted to")
     note: str = Field("", description="what the officer should know about the line")
+    nudged_m: float = Field(0.0, description="moved away from the ship by the officer since "
+                                             "it was set (m; negative: towards it)")
+    nudged_deg: float = Field(0.0, description="turned by the officer since it was set (deg, "
+                                               "clockwise)")
     t: float | None
 
 

@@ -336,10 +336,7 @@ class Session:
                                                          berth_line.sigma_deg))
             readout = header["overlay"]["berth"]
             if readout is not None and berth_line is not None:
-                readout.update(source=berth_line.source, method=berth_line.method,
-                               sigma_m=None if berth_line.sigma_m is None else round(
-                                   berth_line.sigma_m, 3),
-                               support_points=berth_line.support, note=berth_line.note)
+                readout.update(berth_line.describe())
             with self.lock:
                 self.targets.readouts(header["overlay"]["targets"])
         text = json.dumps(header, separators=(",", ":"), allow_nan=False)

@@ -291,6 +291,9 @@ def test_designate_targets_and_berth_line(live: Live, replayed: dict):
         assert nudged["bow_distance_m"] == pytest.approx(12.8, abs=1e-3)
         turned = client.post(f"{base}/berth-line/nudge", json={"rotate_deg": 2.0}).json()
         assert abs(turned["angle_deg"]) == pytest.approx(2.0, abs=1e-3)
+        # the line says it was moved by hand since it was set (the page shows it)
+        assert turned["nudged_m"] == pytest.approx(0.3) and turned["nudged_deg"] == 2.0
+        assert typed["nudged_m"] == 0.0
         assert client.post(f"{base}/berth-line/nudge",
                            json={"offset_m": 1e9}).status_code == 422
         # the approach-speed alarm limits: a table by distance, checked

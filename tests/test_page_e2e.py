@@ -1142,5 +1142,14 @@ def test_berth_clicks_on_the_true_quay_foot_give_the_true_bow_distance(browser,
             assert slipped["method"] == "quay-face"
             assert slipped["bow_distance_m"] == pytest.approx(true_bow, abs=tolerance)
             assert abs(slipped["bow_distance_m"] - bow) <= 0.3
+        # nudged by hand: the figures follow, and the line says it is no longer the fit alone
+        before = frame(pg)["overlay"]["berth"]["bow_distance_m"]
+        pg.click("#nudge-out")
+        pg.click("#nudge-out")
+        nudged = wait_frame(pg, "f => f.overlay.berth && f.overlay.berth.nudged_m > 0.19")
+        assert nudged["overlay"]["berth"]["bow_distance_m"] == pytest.approx(before + 0.2,
+                                                                              abs=0.02)
+        _wait(pg, "document.getElementById('berth-method').textContent.includes('nudged')", 5)
+        assert "0.20 m out" in pg.locator("#berth-method").inner_text()
     finally:
         _close(pg, default_server)

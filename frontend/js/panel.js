@@ -102,7 +102,11 @@ export class Panel {
         : `${ttc.toFixed(0)}<span class="unit">s${ttcSigma}</span>`);
     const info = this.el("berth-method");
     const how = METHOD_TEXT[berth.method]?.(berth) ?? SOURCE_TEXT[berth.source] ?? "";
-    info.textContent = how;
+    // moved by hand since it was set: the figures are to the officer's line, not the fit's
+    const parts = [];
+    if (Math.abs(berth.nudged_m ?? 0) >= 0.005) parts.push(`${Math.abs(berth.nudged_m).toFixed(2)} m ${berth.nudged_m > 0 ? "out" : "in"}`);
+    if (Math.abs(berth.nudged_deg ?? 0) >= 0.05) parts.push(`${berth.nudged_deg.toFixed(1)}°`);
+    info.textContent = parts.length ? `${how} · nudged ${parts.join(", ")}` : how;
     info.title = berth.note || "";
     info.classList.toggle("warn", berth.method === "water-plane");
   }
