@@ -176,9 +176,12 @@ function withLocal(f) {
     ov.birdseye.berth_line = L.berth ? L.berth.line_ne : null;
   }
   const keep = (t) => !L.remove.has(t.id);
-  ov.targets = [...(ov.targets || []).filter(keep), ...L.add.filter(keep)];
+  // a frame that already carries a target shows it once (a trial saw "T12" drawn twice)
+  const shown = new Set((ov.targets || []).map((t) => t.id));
+  const added = L.add.filter((t) => keep(t) && !shown.has(t.id));
+  ov.targets = [...(ov.targets || []).filter(keep), ...added];
   ov.birdseye.targets = [...(ov.birdseye.targets || []).filter(keep),
-    ...L.add.filter(keep).map((t) => ({ id: t.id, ne: t.position_ned.slice(0, 2) }))];
+    ...added.map((t) => ({ id: t.id, ne: t.position_ned.slice(0, 2) }))];
   return { ...f, overlay: ov };
 }
 
