@@ -362,6 +362,8 @@ class Session:
             if speed is None:
                 raise Unprocessable("action 'speed' needs 'speed' (a positive factor or 'max')")
             self.replayer.set_speed(None if speed == "max" else float(speed))
+            # no state changes: the screens watching are told (each shows the speed it runs at)
+            self.on_state(self.replayer.state)
         else:
             raise Unprocessable(f"unknown action {action!r}")
 

@@ -738,6 +738,15 @@ def test_speed_and_a_second_screen(page, browser, server: str) -> None:
         wait_frame(second)
         assert second.evaluate("() => window.berthing.session.id") == sid
         assert second.locator("#speed").input_value() == "2"
+        # a speed the menu lacks, set through the API: the menu shows it, not its last value
+        with urllib.request.urlopen(urllib.request.Request(
+                f"{server}/api/sessions/{sid}/control", method="POST",
+                data=json.dumps({"action": "speed", "speed": 8}).encode(),
+                headers={"Content-Type": "application/json"}), timeout=5):
+            pass
+        _wait(second, "b.session.speed === 8", 10)
+        second.wait_for_timeout(300)
+        assert second.locator("#speed").input_value() == "8"
         pause(second)
         _wait(page, "b.session.state === 'paused'", 10)
         assert page.locator("#play").inner_text() == "▶"

@@ -73,8 +73,14 @@ export class Controls {
     this.play.title = this.playing ? "Pause (space)" : "Play (space)";
     this.seek.max = String(s.duration_s);
     this.duration.textContent = fmtTime(s.duration_s);
-    if (s.speed != null && [...this.speed.options].some((o) => o.value === String(s.speed))) {
-      this.speed.value = String(s.speed);
+    if (s.speed != null) {
+      // a speed set elsewhere (the API, another screen) that the menu lacks is added to it:
+      // the menu never shows a speed the replay is not running at
+      const v = String(s.speed);
+      if (![...this.speed.options].some((o) => o.value === v)) {
+        this.speed.add(new Option(`${v}×`, v), this.speed.options[this.speed.options.length - 1]);
+      }
+      this.speed.value = v;
     }
     if (!this.dragging && s.state !== "playing" && s.state !== "seeking") this.setTime(s.time_s);
     if (s.state === "seeking") {
