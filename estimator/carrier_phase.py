@@ -35,14 +35,7 @@ from .cpp import (
     robust_lsq,
     tdcp_fit,
 )
-from .ekf import (
-    EkfConfig,
-    ErrorStateEkf,
-    EtaInput,
-    SdRow,
-    VelocityInput,
-    chi2_gate,
-)
+from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput, chi2_gate
 from .frames import ecef_to_ned, ned_to_ecef
 from .gnss_epochs import N_RECEIVERS, GnssFront
 from .integrity import IntegrityMonitor
