@@ -263,8 +263,9 @@ class Session:
             if gone:
                 self.unwatched_since = time.monotonic()
             then = self.on_unwatched if gone else None
-        if then is not None:
-            then()
+        if then is not None:  # off the caller's thread: the stream's event loop must not
+            # wait for the replay to stop
+            threading.Thread(target=then, name=f"delete-{self.id}", daemon=True).start()
 
     def watched(self) -> bool:
         with self.lock:
