@@ -105,8 +105,8 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     normal = normal * side  # from the line towards the ship
     velocity = np.asarray(state.velocity_ned, dtype=float)[:2]
     r = float(state.rate_of_turn)
-    pos_var = _plan_variance(state, normal)
-    vel_var = _plan_variance(state, normal, "velocity_cov")
+    pos_var = _plan_variance(getattr(state, "position_cov", None), normal)
+    vel_var = _plan_variance(getattr(state, "velocity_cov", None), normal)
     yaw_var = _yaw_variance(state)
     rate_var = float(getattr(state, "rate_of_turn_sigma", 0.0) or 0.0) ** 2
 
@@ -161,9 +161,9 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
 MIN_CLOSING_MPS = 0.005  # slower than this is not closing (no time to contact)
 
 
-def _plan_variance(state: Any, normal: np.ndarray, which: str = "position_cov") -> float:
-    """The variance of the state's position (or velocity) along the horizontal ``normal``."""
-    cov = getattr(state, which, None)
+def _plan_variance(cov: np.ndarray | None, normal: np.ndarray) -> float:
+    """The variance along the horizontal ``normal`` of a 3x3 (position or velocity)
+    covariance; 0 without one."""
     if cov is None:
         return 0.0
     P = np.asarray(cov, dtype=float)[:2, :2]

@@ -71,10 +71,10 @@ def delete_session(session: SessionDep, manager: ManagerDep,
                                    "what a closing page asks, so that a session another "
                                    "tab joined, and its locked targets, stay")] = False
                    ) -> Response:
-    if when_unwatched and not manager.delete_when_unwatched(session.id):
-        return Response(status_code=status.HTTP_202_ACCEPTED)
     if not when_unwatched:
         manager.delete(session.id)
+    elif not manager.delete_when_unwatched(session.id):
+        return Response(status_code=status.HTTP_202_ACCEPTED)  # once its last watcher goes
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

@@ -361,8 +361,10 @@ class RateSmoother:
 
     def __init__(self, noise_density: float) -> None:
         self.arw2 = float(noise_density) ** 2  # (rad/s)²·s: an average over T has arw²/(2T)
+        # what the two means' difference holds of the gyro noise alone (three axes)
+        self._noise2 = 3.0 * self.arw2 * (1.0 / (2.0 * self.FAST_S) + 1.0 / (2.0 * self.SLOW_S))
         self.fast = self.slow = self.out = np.zeros(3)
-        self.lag2 = 0.0  # the slow mean's squared lag, (rad/s)², three axes
+        self.accel2 = 0.0  # the rate's squared acceleration, (rad/s²)², three axes
         self.tau = self.SLOW_S
         self._diff2: float | None = None
 
@@ -379,15 +381,13 @@ class RateSmoother:
         self.slow = self.slow + min(dt / self.SLOW_S, 1.0) * (omega - self.slow)
         d = self.fast - self.slow
         self._diff2 += min(dt / self.MEASURE_S, 1.0) * (float(d @ d) - self._diff2)
-        noise = 3.0 * self.arw2 * (1.0 / (2.0 * self.FAST_S) + 1.0 / (2.0 * self.SLOW_S))
-        self.lag2 = max(self._diff2 - noise, 0.0)
-        accel2 = self.lag2 / self.SLOW_S**2
-        self.tau = self.SLOW_S if accel2 <= 0.0 else \
-            float(np.clip((3.0 * self.arw2 / (4.0 * accel2)) ** (1.0 / 3.0), dt, self.SLOW_S))
+        # the slow mean's lag beyond the noise, a·τ_slow
+        self.accel2 = max(self._diff2 - self._noise2, 0.0) / self.SLOW_S**2
+        self.tau = self.SLOW_S if self.accel2 <= 0.0 else min(max(
+            (3.0 * self.arw2 / (4.0 * self.accel2)) ** (1.0 / 3.0), dt), self.SLOW_S)
         self.out = self.out + min(dt / self.tau, 1.0) * (omega - self.out)
 
     @property
     def sigma(self) -> float:
         """1-σ of one axis of ``out`` (rad/s): its noise and its lag (without the bias)."""
-        return math.sqrt(self.arw2 / (2.0 * self.tau)
-                         + self.lag2 / self.SLOW_S**2 * self.tau**2 / 3.0)
+        return math.sqrt(self.arw2 / (2.0 * self.tau) + self.accel2 * self.tau**2 / 3.0)

@@ -915,9 +915,12 @@ class DesignatedTarget:
         near, far = self.edge_span_m
         return P + (0.5 * (far - near)) ** 2 * np.outer(u, u)
 
-    def distance(self, view: CameraView) -> tuple[float, float]:
-        """Distance (m) from the camera of ``view`` to the 3-D point, and its 1-σ."""
-        X, P = self.position_ned, self.reported_covariance(view)
+    def distance(self, view: CameraView, reported: np.ndarray | None = None
+                 ) -> tuple[float, float]:
+        """Distance (m) from the camera of ``view`` to the 3-D point, and its 1-σ (from
+        ``reported``, the ``reported_covariance`` at ``view`` when already formed)."""
+        X = self.position_ned
+        P = self.reported_covariance(view) if reported is None else reported
         c = np.asarray(view.position_ned, float)
         d = float(np.linalg.norm(X - c))
         u = (X - c) / max(d, 1e-9)
@@ -1029,11 +1032,11 @@ class DesignatedTarget:
             else:
                 uv = res.uv
         self.status = "tracking" if uv is not None else "lost"
-        d, d_sigma = self.distance(view)
+        P = self.reported_covariance(view)
+        d, d_sigma = self.distance(view, P)
         return TargetState(status=self.status, uv=None if uv is None else np.asarray(uv).copy(),
                            predicted_uv=pred, position_ned=self.position_ned,
-                           covariance=self.reported_covariance(view), distance_m=d,
-                           distance_sigma_m=d_sigma,
+                           covariance=P, distance_m=d, distance_sigma_m=d_sigma,
                            score=float(res.score), views=int(self.map.views[0]),
                            reason=reason if uv is None or reacquired else "",
                            reacquired=reacquired)
@@ -1100,7 +1103,7 @@ class DesignatedTarget:
         if self.attitude_cov is not None:
             J = common_rotation_jacobian(*common)
             P = P + J @ self.attitude_cov @ J.T
-        if self._under_water(X, P):
+        if under_water(X, P, self.water_down_m):
             return 0  # the track followed a mirror image (the drifts unspent)
         # The views' slow common drifts: their camera centres' from the click
         # (``TargetParams.position_drift_mps``), the track's while it is unanchored
@@ -1114,9 +1117,6 @@ class DesignatedTarget:
         self.map.x[0], self.map.P[0] = X, P
         self.refined_views = n
         return n
-
-    def _under_water(self, X: np.ndarray, P: np.ndarray) -> bool:
-        return under_water(X, P, self.water_down_m)
 
     def ray_variance(self) -> np.ndarray:
         """(len(seen),): each view's angular variance (normalised units²) — the tracker's
@@ -1198,7 +1198,7 @@ class DesignatedTarget:
         out = self.map.update(0.0, C, c, pose_cov, np.array([0]), xy)
         if self.refined:  # the fused attitude only checks a refined point (class docstring)
             self.map.x[0], self.map.P[0] = kept
-        elif self._under_water(self.map.x[0], self.map.P[0]):
+        elif under_water(self.map.x[0], self.map.P[0], self.water_down_m):
             # a mirror image, or something the ship carries along: refused, as ``refine``
             # refuses it (the views disagreeing with the point, the track is given up)
             self.map.x[0], self.map.P[0] = kept
