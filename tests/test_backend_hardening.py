@@ -37,15 +37,18 @@ class EngineFatal(BaseException):
 
 
 class FailingEngine(ReferenceEngine):
-    def __init__(self, rec: Recording, failure: BaseException | None) -> None:
+    def __init__(self, rec: Recording, failure: BaseException | None,
+                 pace: dict[str, float] | None = None) -> None:
         super().__init__(rec)
         self.failure = failure
         self.frames = 0
+        self.pace = pace if pace is not None else {}
 
     def process_frame(self, t, image):
         self.frames += 1
         if self.failure is not None and self.frames == FAIL_AT_FRAME:
             raise self.failure
+        time.sleep(self.pace.get("frame_s", 0.0))  # as slow as the real engine, when asked
         return super().process_frame(t, image)
 
 
@@ -61,11 +64,18 @@ def failures() -> list[BaseException]:
 
 
 @pytest.fixture(scope="module")
-def server(sim_recording: Path, rec: Recording, failures: list) -> Iterator[Live]:
+def pace() -> dict[str, float]:
+    """Seconds each engine spends on a frame ("frame_s"; none unless a test sets it)."""
+    return {}
+
+
+@pytest.fixture(scope="module")
+def server(sim_recording: Path, rec: Recording, failures: list, pace: dict
+           ) -> Iterator[Live]:
     def factory(cal, nav, opts):
         # the replay's own engine fails, not the look-ahead's (made in its "scout-" thread)
         replay = threading.current_thread().name.startswith("replay-")
-        return FailingEngine(rec, failures.pop(0) if failures and replay else None)
+        return FailingEngine(rec, failures.pop(0) if failures and replay else None, pace)
 
     yield from serve(Settings(default_recording=sim_recording, viser_port=None,
                               engine_factory=factory), rec)
@@ -176,6 +186,29 @@ def test_concurrent_creates_give_exactly_the_limit_and_delete_releases(
     assert not [t for t in threading.enumerate() if t.name.startswith("replay-")]
     gc.collect()
     assert session() is None  # nothing (viewer, listeners, manager) keeps a deleted session
+
+
+def test_no_designation_while_seeking(client: httpx.Client, pace: dict):
+    """A click while the replay seeks would land on the frame it is leaving (a user trial's
+    click during a seek was taken on the 22.9 s frame at 74.2 s, 10 m off): 409, and the same
+    click on the frame the seek stops at is taken."""
+    sid = _create(client, speed=1, paused=True)
+    base = f"/api/sessions/{sid}"
+    wait_status(client, sid, lambda s: s["state"] == "paused")
+    pace["frame_s"] = 0.03  # the 60 frames of a 6 s seek take ~2 s, as the real engine's do
+    try:
+        assert client.post(f"{base}/control", json={"action": "seek", "time": 7.0}
+                           ).status_code == 200
+        assert client.get(base).json()["state"] == "seeking"
+        r = client.post(f"{base}/targets", json={"u": 400, "v": 300})
+        assert r.status_code == 409 and "seeking" in _is_error_body(r)["detail"]
+        assert client.get(base).json()["state"] == "seeking"  # it was, throughout
+    finally:
+        pace.clear()
+    wait_status(client, sid, lambda s: s["state"] == "paused")
+    r = client.post(f"{base}/targets", json={"u": 400, "v": 300})
+    assert r.status_code == 201, r.text
+    assert r.json()["frame_time"] == pytest.approx(7.0, abs=0.11)
 
 
 def test_play_at_the_end_keeps_the_history_and_says_how_to_replay(client: httpx.Client):
