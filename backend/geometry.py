@@ -105,6 +105,7 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     normal = normal * side  # from the line towards the ship
     velocity = np.asarray(state.velocity_ned, dtype=float)[:2]
     r = float(state.rate_of_turn)
+    # the filter's own: the line was measured from the same drifting trajectory
     pos_var = _plan_variance(getattr(state, "position_cov", None), normal)
     vel_var = _plan_variance(getattr(state, "velocity_cov", None), normal)
     yaw_var = _yaw_variance(state)

@@ -340,7 +340,9 @@ class Pose(BaseModel):
     course_deg: float | None
     rate_of_turn_dps: float
     rate_of_turn_std_dps: float = Field(description="1-σ: the smoothed gyro noise and its bias")
-    position_std_m: Vec3
+    position_std_m: Vec3 = Field(description="1-σ against the world origin (NED): the filter's "
+                                 "and the drift it does not model (correlated carrier-phase "
+                                 "errors, the origin's standalone fix), which grows with time")
     velocity_std_mps: Vec3
     attitude_std_deg: Vec3
 

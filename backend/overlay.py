@@ -81,7 +81,9 @@ def pose_dict(state: Any, start_gpst: float) -> dict[str, Any]:
     """JSON form of a fused state (angles in degrees for display, times in both scales)."""
     euler = np.asarray(state.euler, dtype=float)
     v = np.asarray(state.velocity_ned, dtype=float)
-    pos_cov = np.asarray(state.position_cov, dtype=float)
+    # against the world: the filter's and the drift it does not model
+    pos_cov = np.asarray(state.position_cov, dtype=float) + np.asarray(
+        state.position_drift_cov, dtype=float)
     att_cov = np.asarray(state.attitude_cov, dtype=float)
     vel_cov = np.asarray(state.velocity_cov, dtype=float)
     speed = float(np.hypot(v[0], v[1]))

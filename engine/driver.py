@@ -44,7 +44,7 @@ class FusionEngine(Protocol):
     The returned states are ``estimator.options.FusedState``-like objects: ``time``,
     ``position_ned``, ``llh_deg``, ``velocity_ned``, ``euler``, ``C_body_to_level``,
     ``rate_of_turn`` (and, optionally, its ``rate_of_turn_sigma``), ``omega_body``,
-    ``position_cov``, ``velocity_cov``, ``attitude_cov`` and ``status``
+    ``position_cov``, ``position_drift_cov``, ``velocity_cov``, ``attitude_cov`` and ``status``
     (``phase``, ``compass_fixed``, ``satellites``, ``vo_status``, ``scale``,
     ``scale_converged``, ``message``).
     """

@@ -23,6 +23,7 @@ from .cpp import (
     FIT_UNKNOWNS,
     MIN_FIT_SATELLITES,
     SAME_CARRIER_SYSTEMS,
+    CorrelatedDrift,
     EpochGeometry,
     EtaRow,
     TdcpFit,
@@ -34,6 +35,7 @@ from .cpp import (
     origin_sensitivity,
     robust_lsq,
     tdcp_fit,
+    velocity_map,
 )
 from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput, chi2_gate
 from .frames import ecef_to_ned, ned_to_ecef
@@ -161,6 +163,9 @@ class CarrierPhaseCoupling:
         # Started from tilt + course (no compass fix): until the single differences agree.
         self.aligning = aligning
         self.message = ""
+        # the trajectory error the satellites' correlated rate errors have integrated to
+        # since the INS started (the EKF takes them as white)
+        self.drift = CorrelatedDrift()
 
     def update(self, t: float, epochs: list[GnssEpoch | None], ekf: ErrorStateEkf,
                origin: WorldOrigin, front: GnssFront) -> None:
@@ -183,6 +188,9 @@ class CarrierPhaseCoupling:
                 self.monitor.origin_interval(
                     origin_sensitivity(rows, front.prev_geo, geo, origin.C_ecef_to_level,
                                        cfg.tdcp_rate_sigma), rows[0].interval)
+                found = velocity_map(rows, origin.C_ecef_to_level, cfg.tdcp_rate_sigma)
+                if found is not None:
+                    self.drift.interval(*found, rows[0].interval)
         # Single differences: integers re-resolved after slips, rows for the attitude.
         self.integers.drop([key for key in slips if key in self.integers.A])
         sd_rows: list[SdRow] = []

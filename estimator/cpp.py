@@ -344,6 +344,26 @@ def eta_observations(
     return EtaSet(time=time, rows=rows, rejected=rejected)
 
 
+def velocity_map(rows: Sequence[EtaRow], C_ecef_to_level: np.ndarray, rate_sigma: float
+                 ) -> tuple[list[str], np.ndarray] | None:
+    """The satellites of ``rows`` and what an error of each one's range rate does to the
+    rows' weighted least-squares velocity (NED, with the clock drift): 3 x n m/s per m/s.
+    One row per satellite — its antennas, 10 cm apart, share the error (the atmosphere's,
+    the signal's). None with fewer than 5 satellites (no redundancy: the map is then the
+    geometry's noise, not a solution's)."""
+    by_sat: dict[str, list[EtaRow]] = {}
+    for r in rows:
+        by_sat.setdefault(r.sat, []).append(r)
+    if len(by_sat) < 5:
+        return None
+    sats = list(by_sat)
+    H = np.array([np.append(C_ecef_to_level @ by_sat[s][0].los_ecef, 1.0) for s in sats])
+    w = np.array([1.0 / (np.mean([r.sigma**2 for r in by_sat[s]]) / len(by_sat[s])
+                         + rate_sigma**2) for s in sats])
+    Hw = H * w[:, None]
+    return sats, np.linalg.solve(H.T @ Hw, Hw.T)[:3]
+
+
 def origin_sensitivity(rows: Sequence[EtaRow], prev: EpochGeometry, curr: EpochGeometry,
                        C_ecef_to_level: np.ndarray, rate_sigma: float) -> np.ndarray:
     """The velocity (NED, m/s) the rows' least-squares solution takes per metre (NED) of error
@@ -353,23 +373,50 @@ def origin_sensitivity(rows: Sequence[EtaRow], prev: EpochGeometry, curr: EpochG
     adds ``(e₂ − e₁)·δ / Δt`` to the row, e the unit vector towards the satellite at each end
     (its line of sight turns ~1.5·10⁻⁴ rad/s). A standalone fix metres off therefore drifts
     the carrier-phase trajectory by ~0.1 mm/s per metre — for as long as it is used."""
-    by_sat: dict[str, list[EtaRow]] = {}
-    for r in rows:
-        by_sat.setdefault(r.sat, []).append(r)
-    H, D, w = [], [], []
-    for sat, rs in by_sat.items():
-        if sat not in prev.satellites or sat not in curr.satellites:
-            continue
-        turn = curr.satellites[sat].line_of_sight - prev.satellites[sat].line_of_sight
-        H.append(np.append(C_ecef_to_level @ rs[0].los_ecef, 1.0))
-        D.append(C_ecef_to_level @ turn / rs[0].interval)
-        # The satellite's antennas share its rate error: one row per satellite.
-        w.append(1.0 / (np.mean([r.sigma**2 for r in rs]) / len(rs) + rate_sigma**2))
-    if len(H) < 5:
+    kept = [r for r in rows if r.sat in prev.satellites and r.sat in curr.satellites]
+    found = velocity_map(kept, C_ecef_to_level, rate_sigma)
+    if found is None:
         return np.zeros((3, 3))
-    Hw = np.asarray(H) * np.sqrt(w)[:, None]
-    sol = np.linalg.lstsq(Hw, np.asarray(D) * np.sqrt(w)[:, None], rcond=None)[0]
-    return sol[:3]
+    sats, L = found
+    interval = kept[0].interval
+    D = np.array([C_ecef_to_level @ (curr.satellites[s].line_of_sight
+                                     - prev.satellites[s].line_of_sight) / interval
+                  for s in sats])
+    return L @ D
+
+
+@dataclass
+class CorrelatedDrift:
+    """The trajectory error that the satellites' correlated range-rate errors integrate to.
+
+    The EKF takes each epoch's TDCP rate error as white, but the atmosphere's residual and
+    the signal's fluctuation stay correlated over tens of seconds, and the carrier-phase
+    trajectory integrates them: on the real static pair the drift grows about 5x from 30 s
+    to 300 s, where white rate noise would grow it 3x. Model: each satellite's error a
+    first-order Gauss–Markov process (``sigma_mps``, ``tau_s``) common to its antennas,
+    through each epoch's least-squares velocity map (``velocity_map``); this keeps the
+    covariance of the integrated error and its cross-covariance with each satellite's current
+    error (a satellite that sets takes its correlation with it). ``sigma_mps`` and ``tau_s``:
+    fitted to the real static pair (``benchmarks/calibration.py``, one receiver alone, the
+    1-σ of its horizontal drift over windows of 30–180 s within 15 %)."""
+
+    sigma_mps: float = 0.0005
+    tau_s: float = 30.0
+    cov: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    _cross: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def interval(self, sats: Sequence[str], L: np.ndarray, dt: float) -> None:
+        """One interval of ``dt`` s whose velocity took the satellites' errors through
+        ``L`` (3 x n, ``velocity_map``)."""
+        rho = math.exp(-dt / self.tau_s)
+        var = self.sigma_mps**2
+        cross = {s: rho * c for s, c in self._cross.items() if s in sats}
+        for j, s in enumerate(sats):
+            lever = L[:, j] * dt
+            c = cross.get(s, np.zeros(3))
+            self.cov += np.outer(lever, c) + np.outer(c, lever) + var * np.outer(lever, lever)
+            cross[s] = c + var * lever
+        self._cross = cross
 
 
 def atmosphere_corrected(rows: Sequence[EtaRow], prev: EpochGeometry, curr: EpochGeometry,

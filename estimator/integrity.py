@@ -68,6 +68,8 @@ class IntegrityConfig:
     # more than its σ grows. Overbound of that drift, added to the HPL: b·√(t − start). From
     # the real static pair (benchmarks/calibration.py, one receiver alone, the worst window):
     # 20 mm in 10 s, 32 in 30, 46 in 60, 58 in 120 → b = 6 mm/√s bounds every window.
+    # (The reported position σ holds that drift's 1-σ, ``cpp.CorrelatedDrift``; k times it
+    # would be ~3x the worst window seen, so the HPL keeps this overbound instead.)
     drift_m_per_sqrt_s: float = 0.006
     # IMU checks (a ship: rates and specific forces far from a MEMS unit's range)
     imu_gap_s: float = 0.05  # samples further apart than this: a gap
@@ -341,9 +343,9 @@ class IntegrityMonitor:
         self.origin_drift += np.asarray(sensitivity, float) * interval
 
     def origin_drift_cov(self) -> np.ndarray:
-        """Horizontal covariance (m², 2 x 2) of the trajectory error the origin's error has
-        driven so far; independent of the filter's own (which takes the origin as exact)."""
-        A = self.origin_drift[:2]
+        """Covariance (m², NED 3 x 3) of the trajectory error the origin's error has driven so
+        far; independent of the filter's own (which takes the origin as exact)."""
+        A = self.origin_drift
         return A @ self.origin_cov @ A.T
 
     def check_streams(self, t: float) -> None:
@@ -370,7 +372,7 @@ class IntegrityMonitor:
         if position_cov is not None and heading_var is not None and mode != "no position":
             if self.anchored_at is None:
                 self.anchored_at = t
-            horizontal = np.asarray(position_cov, float)[:2, :2] + self.origin_drift_cov()
+            horizontal = np.asarray(position_cov, float)[:2, :2] + self.origin_drift_cov()[:2, :2]
             major = float(np.linalg.eigvalsh(horizontal)[-1])
             drift = cfg.drift_m_per_sqrt_s * math.sqrt(max(t - self.anchored_at, 0.0))
             hpl = cfg.k(2) * math.sqrt(max(major, 0.0)) + cfg.undetected_horizontal_m + drift

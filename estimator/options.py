@@ -68,7 +68,11 @@ class FusedState:
     rate_of_turn: float  # yaw rate, rad/s
     rate_of_turn_sigma: float  # its 1-σ, rad/s
     omega_body: np.ndarray  # body rate w.r.t. L, body axes, rad/s
-    position_cov: np.ndarray  # (3,3) m²
+    position_cov: np.ndarray  # (3,3) m², the filter's
+    # (3,3) m², the drift since the INS started that the filter does not model: added for the
+    # position against the world (/pose), not for what was measured from the same drifting
+    # trajectory (a designated target, the berth line)
+    position_drift_cov: np.ndarray
     velocity_cov: np.ndarray  # (3,3) (m/s)²
     attitude_cov: np.ndarray  # (3,3) rad² (small angles in L)
     status: FusionStatus

@@ -228,6 +228,13 @@ class Fusion:
     def landmarks(self) -> LandmarkMap | None:
         return self.coupling.landmarks
 
+    def position_drift_cov(self) -> np.ndarray:
+        """What the filter's position covariance does not hold (NED, m²): the drift that the
+        satellites' correlated rate errors integrate to (``cpp.CorrelatedDrift``) and the one
+        the world origin's error drives (``IntegrityMonitor.origin_drift_cov``)."""
+        drift = np.zeros((3, 3)) if self.carrier is None else self.carrier.drift.cov
+        return drift + self.monitor.origin_drift_cov()
+
     def state(self, at: float | None = None) -> FusedState | None:
         """Current fused state (extrapolated to ``at`` when the INS is slightly behind)."""
         if self.ekf is None or self.ins is None or self.origin is None:
@@ -262,7 +269,8 @@ class Fusion:
             # axis)
             rate_of_turn_sigma=math.hypot(self._rate.sigma,
                                           math.sqrt(max(float(P[ix.BG, ix.BG][2, 2]), 0.0))),
-            position_cov=P[ix.R, ix.R].copy(), velocity_cov=P[ix.V, ix.V].copy(),
+            position_cov=P[ix.R, ix.R].copy(), position_drift_cov=self.position_drift_cov(),
+            velocity_cov=P[ix.V, ix.V].copy(),
             attitude_cov=P[ix.E, ix.E].copy(),
             status=self.status())
 

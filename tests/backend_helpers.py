@@ -53,6 +53,7 @@ class _Fused:
     attitude_cov: np.ndarray
     status: _Status
     velocity_cov: np.ndarray = field(default_factory=lambda: np.eye(3) * 1e-6)
+    position_drift_cov: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
 
 class ReferenceEngine:
