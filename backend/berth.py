@@ -83,6 +83,19 @@ class BerthLine:
     # still the fit's, the nudge exact; the page says the line is no longer the fit alone
     nudged_m: float = 0.0
     nudged_deg: float = 0.0
+    # the fused position's unmodelled drift (``FusedState.position_drift_cov``) when the line
+    # was measured from the trajectory (clicked, snapped, typed from the bow); None for a line
+    # fixed in the world: the ship's whole drift since the INS started is then against it
+    drift_at_set: np.ndarray | None = None
+
+    def drift_since(self, state: Any) -> np.ndarray:
+        """The drift (3 x 3 m², NED) of the fused position against this line at ``state``."""
+        drift = np.asarray(state.position_drift_cov, dtype=float)
+        if self.drift_at_set is not None:
+            drift = drift - self.drift_at_set
+        # the drift only grows; keep what may not (the difference of two covariances)
+        w, V = np.linalg.eigh(0.5 * (drift + drift.T))
+        return (V * np.clip(w, 0.0, None)) @ V.T
 
     def describe(self) -> dict[str, Any]:
         """What the line is, as the API and the frames give it (besides where it is)."""
@@ -443,21 +456,26 @@ class Berth:
                                 "apart")
         return line
 
-    def _set(self, line: BerthLine) -> BerthLine:
+    def _set(self, line: BerthLine, measured_at: Any | None = None) -> BerthLine:
+        """Set ``line``; ``measured_at``: the fused state it was measured from (its drift)."""
         self._check(line.line_ne)
+        if measured_at is not None:
+            line = replace(line, drift_at_set=np.array(measured_at.position_drift_cov, float))
         with self.lock:
             self.line = line
             return line
 
     def set_ned(self, line_ne: np.ndarray, snap: bool = False, structure: Structure | None = None,
-                camera_ned: np.ndarray | None = None) -> BerthLine:
-        """Two plan points; with ``snap`` fitted to the quay face's points near them when the
-        structure has enough (else as given, and the note says so)."""
+                state: Any | None = None) -> BerthLine:
+        """Two plan points; with ``snap`` fitted to the quay face's points near them, seen from
+        the fused ``state``, when the structure has enough (else as given, and the note says
+        so)."""
         line = self._check(line_ne)
-        if snap and structure is not None and camera_ned is not None:
+        if snap and structure is not None and state is not None:
+            camera_ned = camera_pose(state, self.rec.calibration.camera).position_ned
             fitted = snap_to_face(line, structure, self.water_down_m, camera_ned)
             if fitted is not None:
-                return self._set(fitted)
+                return self._set(fitted, state)
             return self._set(BerthLine(line, "ned", note="no converged port structure near "
                                        "the clicked line: kept as clicked"))
         return self._set(BerthLine(line, "ned"))
@@ -474,12 +492,12 @@ class Berth:
                                     " image")
         fitted = fit_quay_face(p, pose, clicks, structure, self.water_down_m)
         if fitted is not None:
-            return self._set(fitted)
-        return self._set(water_plane_line(p, pose, clicks, self.water_down_m))
+            return self._set(fitted, state)
+        return self._set(water_plane_line(p, pose, clicks, self.water_down_m), state)
 
     def set_from_bow(self, state: Any, distance_m: float, bearing_deg: float) -> BerthLine:
         line = line_from_bow(state, self.rec.hull.outline_body, distance_m, bearing_deg)
-        return self._set(BerthLine(line, "typed"))
+        return self._set(BerthLine(line, "typed"), state)
 
     def nudge(self, state: Any | None, offset_m: float, rotate_deg: float) -> BerthLine:
         """Move the line ``offset_m`` away from the ship (negative: towards it) and turn it
@@ -527,7 +545,8 @@ class Berth:
         world = self.world(state)
         if line is None or world is None or state is None:
             return None
-        return berth_metrics(state, self.rec.hull, world, line.sigma_m, line.sigma_deg)
+        return berth_metrics(state, self.rec.hull, world, line.sigma_m, line.sigma_deg,
+                             line.drift_since(state))
 
     def status(self, state: Any | None, start_gpst: float, placed_by: Any | None = None
                ) -> dict[str, Any]:

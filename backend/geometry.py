@@ -66,8 +66,8 @@ def densify(polygon: np.ndarray, step: float) -> np.ndarray:
 
 
 def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
-                  line_sigma_m: float | None = None, line_sigma_deg: float | None = None
-                  ) -> dict[str, float | None]:
+                  line_sigma_m: float | None = None, line_sigma_deg: float | None = None,
+                  drift_cov: np.ndarray | None = None) -> dict[str, float | None]:
     """The ship against the berth line as pilots' docking displays give it (crews' terms).
 
     - bow (stern) distance: from the hull's foremost (aftmost) point, perpendicular to the
@@ -105,8 +105,10 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     normal = normal * side  # from the line towards the ship
     velocity = np.asarray(state.velocity_ned, dtype=float)[:2]
     r = float(state.rate_of_turn)
-    # the filter's own: the line was measured from the same drifting trajectory
-    pos_var = _plan_variance(getattr(state, "position_cov", None), normal)
+    # the filter's, and the drift it does not model since the line was set
+    # (``BerthLine.drift_since``)
+    pos_var = _plan_variance(getattr(state, "position_cov", None), normal) \
+        + _plan_variance(drift_cov, normal)
     vel_var = _plan_variance(getattr(state, "velocity_cov", None), normal)
     yaw_var = _yaw_variance(state)
     rate_var = float(getattr(state, "rate_of_turn_sigma", 0.0) or 0.0) ** 2

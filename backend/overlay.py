@@ -297,11 +297,12 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
                   targets: Sequence[TargetInput] = (),
                   berth_line_ne: np.ndarray | None = None,
                   config: OverlayConfig | None = None,
-                  berth_sigma: tuple[float | None, float | None] = (None, None)
-                  ) -> dict[str, Any]:
+                  berth_sigma: tuple[float | None, float | None] = (None, None),
+                  berth_drift_cov: np.ndarray | None = None) -> dict[str, Any]:
     """Overlay of one frame: ``video`` (image pixels), ``birdseye`` (plan) and ``targets`` /
     ``berth`` read-outs, all for the pose of ``state``. ``berth_sigma``: the berth line's σ
-    (m across it, deg of its direction)."""
+    (m across it, deg of its direction); ``berth_drift_cov``: the position's drift against it
+    (``berth.BerthLine.drift_since``)."""
     config = config or OverlayConfig()
     pose = camera_pose(state, camera)
     ship_ne = np.asarray(state.position_ned, dtype=float)[:2]
@@ -329,7 +330,8 @@ def build_overlay(state: Any, camera: CameraCalibration, hull: Hull, projector: 
                       berth_line_ne, keep(pts[:, :2], BEHIND_FACE_M))
     _predictions(video, plan, projector, pose, state, hull, config.prediction_seconds, water)
     target_out = _targets(plan, projector, pose, state, hull, targets)
-    berth = _berth(plan, projector, pose, state, hull, berth_line_ne, water, berth_sigma)
+    berth = _berth(plan, projector, pose, state, hull, berth_line_ne, water, berth_sigma,
+                   berth_drift_cov)
     return {"video": video, "birdseye": plan, "targets": target_out, "berth": berth,
             "distance_bands_m": list(DISTANCE_BANDS_M)}
 
@@ -429,7 +431,8 @@ def _targets(plan: dict[str, Any], projector: Projector, pose: CameraPose, state
 
 def _berth(plan: dict[str, Any], projector: Projector, pose: CameraPose, state: Any,
            hull: Hull, berth_line_ne: np.ndarray | None, water: float,
-           sigma: tuple[float | None, float | None]) -> dict[str, Any] | None:
+           sigma: tuple[float | None, float | None], drift_cov: np.ndarray | None
+           ) -> dict[str, Any] | None:
     """Berth line drawn at the foot of the quay (on the water plane) and the berth
     geometry."""
     plan["berth_line"] = None
@@ -438,7 +441,8 @@ def _berth(plan: dict[str, Any], projector: Projector, pose: CameraPose, state: 
     line = np.asarray(berth_line_ne, dtype=float).reshape(2, 2)
     line3 = np.column_stack([line, np.full(2, water)])
     berth: dict[str, Any] = {key: (None if val is None else round(val, 3))
-                             for key, val in berth_metrics(state, hull, line, *sigma).items()}
+                             for key, val in berth_metrics(state, hull, line, *sigma,
+                                                           drift_cov).items()}
     berth["polylines"] = [_round(p, 1) for p in projector.project_segments(
         pose, line3[:1], line3[1:])]
     plan["berth_line"] = _round(line, 3)

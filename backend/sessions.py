@@ -27,7 +27,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from engine.camera import Projector, camera_pose
+from engine.camera import Projector
 from engine.driver import EngineFactory, FusionEngine
 from engine.targets import Structure
 from estimator.integrity import IntegrityConfig
@@ -334,7 +334,8 @@ class Session:
                 pose, self.rec.calibration.camera, self.rec.hull, self.projector, structure,
                 targets, berth, self.overlay_config,
                 (None, None) if berth_line is None else (berth_line.sigma_m,
-                                                         berth_line.sigma_deg))
+                                                         berth_line.sigma_deg),
+                None if berth_line is None else berth_line.drift_since(pose))
             readout = header["overlay"]["berth"]
             if readout is not None and berth_line is not None:
                 readout.update(berth_line.describe())
@@ -493,10 +494,7 @@ class Session:
 
     def set_berth_line_ned(self, line_ne: np.ndarray, snap: bool = False) -> None:
         """Two plan points; with ``snap`` fitted to the quay face's points near them."""
-        state = self.history.latest()
-        camera = None if state is None else camera_pose(state, self.rec.calibration.camera)
-        self.berth.set_ned(line_ne, snap, self.structure(),
-                           None if camera is None else camera.position_ned)
+        self.berth.set_ned(line_ne, snap, self.structure(), self.history.latest())
         self.redraw_if_paused()
 
     def set_berth_line_image(self, frame_t: float | None, points_uv: np.ndarray) -> None:

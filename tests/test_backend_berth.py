@@ -195,12 +195,12 @@ def test_plan_clicks_snap_to_the_quay_face():
     state = make_state()
     berth = _berth()
     line = berth.set_ned(np.array([[QUAY_N - 1.0, -8.0], [QUAY_N + 0.8, 8.0]]), snap=True,
-                         structure=_port(), camera_ned=camera_pose(state, CAMERA).position_ned)
+                         structure=_port(), state=state)
     assert line.method == "quay-face"
     np.testing.assert_allclose(line.line_ne[:, 0], QUAY_N, atol=0.1)
     # nothing there: kept as clicked, with a note
     line = berth.set_ned(np.array([[40.0, -8.0], [40.0, 8.0]]), snap=True,
-                         structure=_port(), camera_ned=np.zeros(3))
+                         structure=_port(), state=make_state())
     assert line.method is None and "as clicked" in line.note
 
 
@@ -223,6 +223,29 @@ def test_typed_in_from_the_bow_and_nudged():
     st = berth.status(state, 0.0)
     assert st["bow_distance_m"] == pytest.approx(20.0, abs=1e-6)
     assert st["angle_deg"] == pytest.approx(90.0, abs=1e-6)
+
+
+def test_the_distance_sigma_holds_the_drift_since_the_line_was_set():
+    """The fused position drifts against the world more than the filter's covariance says
+    (``FusedState.position_drift_cov``). A line measured from the trajectory drifts with it
+    until it is set, so only the drift since counts; a line fixed in the world takes it all."""
+    psi = np.radians(30.0)
+    at_set = make_state((5.0, -2.0, 0.0), (0.0, 0.0, psi), drift_m=0.30)
+    later = make_state((5.0, -2.0, 0.0), (0.0, 0.0, psi), drift_m=0.50)
+    berth = _berth()
+    berth.set_from_bow(at_set, 12.0, -90.0)
+    own = berth.status(at_set, 0.0)["bow_distance_sigma_m"]  # the filter's position, heading
+    assert own < 0.02
+    since = np.sqrt(0.50**2 - 0.30**2)
+    assert berth.status(later, 0.0)["bow_distance_sigma_m"] == pytest.approx(
+        np.hypot(own, since), abs=2e-3)
+    berth.nudge(later, 0.5, 0.0)  # moved by hand: still measured when it was set
+    assert berth.status(later, 0.0)["bow_distance_sigma_m"] == pytest.approx(
+        np.hypot(own, since), abs=2e-3)
+    world = berth.world(later)
+    berth.set_ned(world)  # the same line typed in world coordinates: the whole drift
+    assert berth.status(later, 0.0)["bow_distance_sigma_m"] == pytest.approx(
+        np.hypot(own, 0.50), abs=2e-3)
 
 
 # -------------------------------------------------------------------------------- alarms

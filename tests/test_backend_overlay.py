@@ -27,12 +27,13 @@ WATER = 0.6  # the water plane's down coordinate (body origin 0.6 m above the wa
 
 
 def make_state(position=(0.0, 0.0, 0.0), euler=(0.0, 0.0, 0.0), velocity=(0.0, 0.0, 0.0),
-               rate=0.0) -> SimpleNamespace:
+               rate=0.0, drift_m=0.0) -> SimpleNamespace:
     e = np.array(euler, dtype=float)
     return SimpleNamespace(time=100.0, position_ned=np.array(position, dtype=float),
                            llh_deg=np.zeros(3), velocity_ned=np.array(velocity, dtype=float),
                            euler=e, C_body_to_level=euler_to_dcm(*e), rate_of_turn=rate,
                            omega_body=np.zeros(3), position_cov=np.eye(3) * 1e-4,
+                           position_drift_cov=np.eye(3) * drift_m**2,
                            attitude_cov=np.eye(3) * 1e-6, velocity_cov=np.zeros((3, 3)),
                            status=None)
 
