@@ -301,7 +301,7 @@ class _Loop:
     messages: Iterator[SensorMessage] = field(default_factory=lambda: iter(()))
     pending: SensorMessage | None = None  # taken from the iterator, not yet processed
     target: float | None = None  # gpst the current fast-forward runs to
-    anchor: tuple[float, float] | None = None  # (wall, gpst) of the pacing clock
+    anchor: tuple[float, float, float] | None = None  # (wall, gpst, speed) of the pacing clock
     notified: ReplayState | None = None  # the state the sink was last told
 
 
@@ -686,21 +686,23 @@ class Replayer:
                     "sensors go on: no picture after it, the replay stops here")
         return None
 
-    def _pace(self, t: float, speed: float, anchor: tuple[float, float] | None
-              ) -> tuple[float, float] | None:
+    def _pace(self, t: float, speed: float, anchor: tuple[float, float, float] | None
+              ) -> tuple[float, float, float] | None:
         """Sleep until message time ``t`` is due on the replay clock; None when a command
-        arrived meanwhile. Re-anchors when behind by more than MAX_LAG_S (no catch-up burst)."""
+        arrived meanwhile. Re-anchors when behind by more than MAX_LAG_S (no catch-up burst).
+        A new speed starts the clock afresh: what was lost at the old one is not behind now
+        (a user trial: 4x then 1x, keeping pace, and still "behind real time by 17 s")."""
         now = time.monotonic()
-        if anchor is None:
+        if anchor is None or anchor[2] != speed:
             with self._cond:
                 self._lag = self._behind = 0.0
-            return now, t
+            return now, t, speed
         due = anchor[0] + (t - anchor[1]) / speed
         with self._cond:
             self._lag = max(0.0, now - due)
             if now - due > MAX_LAG_S:
                 self._behind += (now - due) * speed  # the engine is slower than real time
-                return now, t
+                return now, t, speed
             while True:
                 if self._stop or self._seek_to is not None or not self._playing:
                     return None

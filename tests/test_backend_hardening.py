@@ -51,6 +51,10 @@ class FailingEngine(ReferenceEngine):
         time.sleep(self.pace.get("frame_s", 0.0))  # as slow as the real engine, when asked
         return super().process_frame(t, image)
 
+    def process_imu(self, t, gyro, accel) -> None:
+        time.sleep(self.pace.get("imu_s", 0.0))
+        super().process_imu(t, gyro, accel)
+
 
 @pytest.fixture(scope="module")
 def rec(sim_recording: Path) -> Recording:
@@ -65,7 +69,8 @@ def failures() -> list[BaseException]:
 
 @pytest.fixture(scope="module")
 def pace() -> dict[str, float]:
-    """Seconds each engine spends on a frame ("frame_s"; none unless a test sets it)."""
+    """Seconds each engine spends on a frame ("frame_s") and an IMU sample ("imu_s"; none
+    unless a test sets them)."""
     return {}
 
 
@@ -209,6 +214,30 @@ def test_no_designation_while_seeking(client: httpx.Client, pace: dict):
     r = client.post(f"{base}/targets", json={"u": 400, "v": 300})
     assert r.status_code == 201, r.text
     assert r.json()["frame_time"] == pytest.approx(7.0, abs=0.11)
+
+
+def test_behind_real_time_is_counted_afresh_at_a_new_speed(client: httpx.Client, pace: dict):
+    """An engine slower than the speed asked falls behind real time, and says by how much;
+    at a speed it keeps up with, it is behind by nothing (a user trial: 4x, then 1x keeping
+    pace, and the page still read "behind real time by 17 s")."""
+    sid = _create(client, speed=4, paused=True)
+    base = f"/api/sessions/{sid}"
+    wait_status(client, sid, lambda s: s["state"] == "paused")
+    # 2x real time at most, and behind at every message at 4x (not only at the frames: the
+    # clock is then never waited for, so nothing but the new speed can start it afresh)
+    pace.update(frame_s=0.01, imu_s=0.004)
+    try:
+        assert client.post(f"{base}/control", json={"action": "play"}).status_code == 200
+        behind = wait_status(client, sid, lambda s: s["behind_s"] > 1.0, timeout=20)
+        assert behind["state"] == "playing" and behind["lag_s"] >= 0.0
+        assert client.post(f"{base}/control", json={"action": "speed", "speed": 1}
+                           ).status_code == 200
+        time.sleep(1.5)
+        keeping_up = client.get(base).json()
+        assert keeping_up["state"] == "playing" and keeping_up["speed"] == 1
+        assert keeping_up["behind_s"] == 0.0 and keeping_up["lag_s"] < 0.5, keeping_up
+    finally:
+        pace.clear()
 
 
 def test_play_at_the_end_keeps_the_history_and_says_how_to_replay(client: httpx.Client):
