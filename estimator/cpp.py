@@ -344,17 +344,17 @@ def eta_observations(
     return EtaSet(time=time, rows=rows, rejected=rejected)
 
 
-def velocity_map(rows: Sequence[EtaRow], C_ecef_to_level: np.ndarray, rate_sigma: float
-                 ) -> tuple[list[str], np.ndarray] | None:
+def velocity_map(rows: Sequence[EtaRow], C_ecef_to_level: np.ndarray, rate_sigma: float,
+                 min_satellites: int = 4) -> tuple[list[str], np.ndarray] | None:
     """The satellites of ``rows`` and what an error of each one's range rate does to the
     rows' weighted least-squares velocity (NED, with the clock drift): 3 x n m/s per m/s.
     One row per satellite — its antennas, 10 cm apart, share the error (the atmosphere's,
-    the signal's). None with fewer than 5 satellites (no redundancy: the map is then the
-    geometry's noise, not a solution's)."""
+    the signal's). None with fewer than ``min_satellites`` (4: the velocity and the clock
+    drift)."""
     by_sat: dict[str, list[EtaRow]] = {}
     for r in rows:
         by_sat.setdefault(r.sat, []).append(r)
-    if len(by_sat) < 5:
+    if len(by_sat) < max(min_satellites, 4):
         return None
     sats = list(by_sat)
     H = np.array([np.append(C_ecef_to_level @ by_sat[s][0].los_ecef, 1.0) for s in sats])
@@ -374,7 +374,7 @@ def origin_sensitivity(rows: Sequence[EtaRow], prev: EpochGeometry, curr: EpochG
     (its line of sight turns ~1.5·10⁻⁴ rad/s). A standalone fix metres off therefore drifts
     the carrier-phase trajectory by ~0.1 mm/s per metre — for as long as it is used."""
     kept = [r for r in rows if r.sat in prev.satellites and r.sat in curr.satellites]
-    found = velocity_map(kept, C_ecef_to_level, rate_sigma)
+    found = velocity_map(kept, C_ecef_to_level, rate_sigma, min_satellites=5)
     if found is None:
         return np.zeros((3, 3))
     sats, L = found
