@@ -302,6 +302,10 @@ class SessionStatus(BaseModel):
     lag_s: float = Field(description="how late the last message was on the replay clock")
     behind_s: float = Field(description="recording seconds the replay fell behind real time "
                                         "since it last started playing (engine too slow)")
+    achieved_speed: float | None = Field(
+        None, description="recording seconds per wall second since the replay clock last "
+                          "started (play, seek, speed): below `speed` when the engine cannot "
+                          "keep up; null while paused, seeking or flat out")
     frames_processed: int
     frames_total: int
     clients: int
@@ -700,6 +704,8 @@ class ReplayBrief(BaseModel):
     lag_s: float
     behind_s: float = Field(0.0, description="recording seconds the replay fell behind real "
                                              "time since it last started playing")
+    achieved_speed: float | None = Field(None, description="recording seconds per wall "
+                                                           "second since the clock started")
     scouted_s: float | None = Field(None, description="how far the look-ahead engine has run: "
                                                       "seeks up to here are quick")
 

@@ -330,6 +330,7 @@ class Replayer:
         self._frames = 0
         self._lag = 0.0  # s the last message was late on the replay clock
         self._behind = 0.0  # recording s lost to re-anchoring since the clock last started
+        self._clock_start: tuple[float, float] | None = None  # (wall, gpst) it last started
         self._checkpoint_interval = checkpoint_interval_s
         self._max_checkpoints = max_checkpoints
         self._checkpoints: list[_Checkpoint] = []
@@ -420,12 +421,22 @@ class Replayer:
                 "frames_processed": self._frames,
                 "lag_s": self._lag,
                 "behind_s": self._behind,
+                "achieved_speed": self._achieved_speed(),
                 "error": self._error,
                 "checkpoints": [c.t for c in self._checkpoints],
                 "checkpoint_note": self._checkpoint_note,
                 "scouted_gpst": None if self.scout is None else self.scout.frontier,
                 "scout_error": None if self.scout is None else self.scout.error,
             }
+
+    def _achieved_speed(self) -> float | None:
+        """Recording seconds per wall second since the clock last started (a play, a seek,
+        a new speed), once a second has passed; None while not pacing (paused, flat out)."""
+        if self._clock_start is None or not self._playing or self._speed is None \
+                or self._state != ReplayState.PLAYING:
+            return None
+        wall = time.monotonic() - self._clock_start[0]
+        return (self._t - self._clock_start[1]) / wall if wall >= 1.0 else None
 
     @property
     def state(self) -> ReplayState:
@@ -696,6 +707,7 @@ class Replayer:
         if anchor is None or anchor[2] != speed:
             with self._cond:
                 self._lag = self._behind = 0.0
+                self._clock_start = (now, t)
             return now, t, speed
         due = anchor[0] + (t - anchor[1]) / speed
         with self._cond:

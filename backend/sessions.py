@@ -319,6 +319,8 @@ class Session:
             "replay": {"state": replay["state"], "speed": replay["speed"],
                        "lag_s": round(replay["lag_s"], 3),
                        "behind_s": round(replay["behind_s"], 3),
+                       "achieved_speed": None if replay["achieved_speed"] is None
+                       else round(replay["achieved_speed"], 3),
                        "scouted_s": None if replay.get("scouted_gpst") is None
                        else round(replay["scouted_gpst"] - self.start_gpst, 3)},
             "processed_at": result.processed_wall,
@@ -390,6 +392,7 @@ class Session:
             "seek_target_s": None if target is None else round(target - self.start_gpst, 6),
             "lag_s": round(replay["lag_s"], 4),
             "behind_s": round(replay["behind_s"], 3),
+            "achieved_speed": None if (a := replay["achieved_speed"]) is None else round(a, 3),
             "frames_processed": replay["frames_processed"],
             "frames_total": len(self.rec.frame_times),
             "clients": clients,

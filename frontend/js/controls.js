@@ -100,7 +100,11 @@ export class Controls {
 
   /** From each shown frame: how the replay keeps up with real time. */
   setReplay(replay) {
-    this.behind = replay?.state === "playing" ? replay.behind_s ?? 0 : 0;
+    const playing = replay?.state === "playing";
+    this.behind = playing ? replay.behind_s ?? 0 : 0;
+    // what the replay achieves against the speed asked (an engine too slow for it)
+    this.achieved = playing && replay.speed != null ? replay.achieved_speed ?? null : null;
+    this.asked = replay?.speed ?? null;
     this.setScouted(replay?.scouted_s);
     this._badge();
   }
@@ -130,6 +134,9 @@ export class Controls {
       this.time.textContent = fmtTime(s.seek_target_s);
     } else if (s.state === "playing" && this.behind >= 1) {
       text = `BEHIND REAL TIME BY ${this.behind.toFixed(0)} s`;
+      if (this.achieved != null && this.asked != null && this.achieved < 0.9 * this.asked) {
+        text += ` — RUNNING AT ${this.achieved.toFixed(1)}× OF ${this.asked}×`;
+      }
     }
     this.badge.hidden = !text;
     this.badge.textContent = text || "";
