@@ -153,7 +153,8 @@ class LiveRunner:
             return {
                 "state": self._state.value, "time_gpst": self._t, "playing": True,
                 "speed": 1.0, "seek_target_gpst": None, "frames_processed": self._frames,
-                "lag_s": self._lag, "behind_s": 0.0, "error": self._error,
+                "lag_s": self._lag, "behind_s": 0.0, "achieved_speed": None,
+                "error": self._error,
                 "checkpoints": [], "checkpoint_note": "live: no checkpoints",
             }
 
