@@ -71,7 +71,8 @@ class LiveRunner:
     """Runs the engine on a live source in a thread (the ``Replayer``'s interface)."""
 
     def __init__(self, source: LiveSource, make_engine: Any, sink: Session, rec: Recording,
-                 recorder: LiveRecorder | None, first: Any) -> None:
+                 recorder: LiveRecorder | None, first: Any,
+                 integrity: IntegrityConfig | None = None) -> None:
         self.source = source
         self._make_engine = make_engine
         self._sink = sink
@@ -96,6 +97,10 @@ class LiveRunner:
         self._nav_count = -1
         self._prepare: Callable[[np.ndarray], Any] | None = None  # the engine's prepare_frame
         self._last_frame: FrameMessage | None = None  # shown again, with the status, if quiet
+        # the camera silent this long (sensor time) is declared by the engine: the session is
+        # then ticked with the state between frames (``_between_frames``)
+        self._video_silent_s = (integrity or IntegrityConfig()).video_silent_s
+        self._ticked = -np.inf
         self._thread = threading.Thread(target=self._run, name="live-session", daemon=True)
         self._pump = threading.Thread(target=self._take_messages, name="live-source",
                                       daemon=True)
@@ -273,6 +278,7 @@ class LiveRunner:
         with self._lock:
             self._t = msg.t
         if not isinstance(msg, FrameMessage):
+            self._between_frames(engine, msg.t)
             return
         n = self._frames
         if n >= len(self._frame_times):
@@ -286,6 +292,19 @@ class LiveRunner:
         self._last_frame = msg
         self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, True, time.time()),
                             engine)
+
+    def _between_frames(self, engine: FusionEngine, t: float) -> None:
+        """The camera silent while the other sensors go on: every ``QUIET_TICK_S``, once the
+        engine has declared it (``video_silent_s``), the session gets the current state — or
+        the pose, the alarms and the berth figures would stay at the last frame's, trusted
+        (a user trial: a 6 s camera outage, /pose 7 s old and "tracking")."""
+        last = self._last_frame
+        if last is None or t - last.t < self._video_silent_s or t - self._ticked < QUIET_TICK_S:
+            return
+        self._ticked = t
+        on_tick = getattr(self._sink, "on_tick", None)
+        if on_tick is not None:
+            on_tick(t, engine.state(at=t), engine)
 
     def _quiet(self, engine: FusionEngine, t: float) -> None:
         """Every sensor silent until ``t``: the engine declares it, and the page gets the
@@ -400,7 +419,7 @@ def start_live_session(manager: SessionManager, config: LiveConfig, *,
     rec = live_recording_stub(config, float(first.t), source.nav, directory)
 
     def runner(make_engine: Any, session: Session) -> LiveRunner:
-        return LiveRunner(source, make_engine, session, rec, recorder, first)
+        return LiveRunner(source, make_engine, session, rec, recorder, first, integrity)
 
     session = manager.add(rec, config.name, runner, options or {}, integrity=integrity)
     if config.bridge.udp is not None or config.bridge.tcp is not None:

@@ -225,6 +225,20 @@ class Session:
             except Exception:
                 log.exception("frame listener failed")
 
+    def on_tick(self, t: float, state: Any, engine: FusionEngine) -> None:
+        """The fusion's state at gpst ``t`` between frames (a live camera silent while the
+        other sensors go on): the pose, the alarms and the berth figures go on from it; the
+        page, whose picture is old, is not sent a frame (it says "no frames" on its own)."""
+        alerts = list(getattr(engine, "alerts", list)())
+        state = copy.deepcopy(state) if state is not None else None
+        pose = state if is_current(state, t) else None
+        with self.lock:
+            if state is not None:
+                self._last_state = state
+                self.alarms.update(state, alerts, self.berth.metrics(pose))
+            if pose is not None:
+                self.history.append(t, pose)
+
     def on_rewind(self, t: float | None) -> None:
         with self.lock:
             self._last_state = None

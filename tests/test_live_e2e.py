@@ -348,3 +348,63 @@ def test_a_live_feed_gone_quiet_is_declared(live_run):
     assert integrity["mode"] == "no position" and not integrity["trusted"], fusion
     assert "no IMU sample" in integrity["reasons"][0], integrity["reasons"]
     assert fusion["phase"] == "degraded"
+
+
+def test_a_live_camera_gone_silent_leaves_no_stale_pose(sim_recording: Path):
+    """The camera stops while the IMU and the receivers go on: the pose, the alarms and the
+    berth figures go on from the fusion's state between frames, which says the video is lost —
+    not the last frame's pose, trusted and "tracking" (a user trial: a 6 s camera outage,
+    /pose 7 s old)."""
+    import copy
+    from types import SimpleNamespace
+
+    from backend.catalog import RecordingCatalog
+    from backend.live_session import LiveRunner
+    from backend.models import FusionOptionsModel
+    from backend.sessions import SessionManager
+    from engine.driver import create_engine
+    from engine.messages import FrameMessage, sensor_messages
+    from recordings.format import load
+
+    rec = load(sim_recording)
+    start = rec.manifest.start_gpst
+    cut, end = start + 6.0, start + 10.0
+    messages = [m for m in sensor_messages(rec, until=end)
+                if not (isinstance(m, FrameMessage) and m.t > cut)]
+
+    class Source:  # the recording's sensors, the camera silent after ``cut``
+        nav = rec.nav
+        health = list
+        # no wall clock to tie to GNSS time: no quiet ticks, no lag (as fast as it goes)
+        aligner = SimpleNamespace(clock=SimpleNamespace(to_gpst=lambda _wall: None))
+
+        def __init__(self) -> None:
+            self.left = iter(messages[1:])
+
+        def next(self, timeout):
+            msg = next(self.left, None)
+            if msg is None:
+                time.sleep(timeout)  # every sensor silent (no quiet tick: no clock here)
+            return msg
+
+        def close(self):
+            pass
+
+    live_rec = copy.copy(rec)  # the runner lists the frames it got in its recording
+    manager = SessionManager(RecordingCatalog(None, sim_recording), create_engine)
+    session = manager.add(live_rec, "live-test", lambda make_engine, s: LiveRunner(
+        Source(), make_engine, s, live_rec, None, messages[0]),
+        FusionOptionsModel().model_dump())
+    try:
+        deadline = time.monotonic() + 120
+        while session.replayer.status()["time_gpst"] < messages[-1].t - 1e-6:
+            assert time.monotonic() < deadline, session.replayer.status()
+            time.sleep(0.2)
+        state = session.current_state()
+        assert state.time > end - 0.6, state.time - start  # not the last frame's (6 s)
+        status = state.status
+        assert status.vo_status == "lost", status
+        assert any("no video frame" in r for r in status.integrity.reasons), status.integrity
+        assert session.report()["samples"] > 0
+    finally:
+        manager.close_all()
