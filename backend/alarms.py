@@ -68,11 +68,23 @@ class AlarmEntry:
     since_s: float
     active: bool = True
     acknowledged: bool = False
+    # the worst it was (an alarm easing to a warning stays one: the run's review must see the
+    # red it raised, not the amber it ended as), with what it said then and when
+    peak_severity: str = ""
+    peak_message: str = ""
+    peak_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.peak_severity:
+            self.peak_severity, self.peak_message, self.peak_s = \
+                self.severity, self.message, self.since_s
 
     def as_dict(self) -> dict[str, Any]:
         return {"id": self.id, "kind": self.kind, "severity": self.severity,
                 "message": self.message, "since_s": round(self.since_s, 3),
-                "active": self.active, "acknowledged": self.acknowledged}
+                "active": self.active, "acknowledged": self.acknowledged,
+                "peak_severity": self.peak_severity, "peak_message": self.peak_message,
+                "peak_s": round(self.peak_s, 3)}
 
 
 class AlarmBook:
@@ -153,6 +165,8 @@ class AlarmBook:
                 SEVERITY_RANK[severity] <= SEVERITY_RANK[current.severity]:
             # still the same alarm (or eased to a lower level): keep its acknowledgement
             current.message, current.severity = message, severity
+            if severity == current.peak_severity:
+                current.peak_message, current.peak_s = message, t  # its latest words at the peak
             return
         if current is not None:
             current.active = False  # a rise to a higher level: the new alarm replaces it

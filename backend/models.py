@@ -245,6 +245,10 @@ class Alarm(BaseModel):
     since_s: float = Field(description="s since the recording start")
     active: bool
     acknowledged: bool
+    peak_severity: Literal["alarm", "warning", "caution"] = Field(
+        description="the worst it reached (an alarm that eased to a warning: alarm)")
+    peak_message: str = Field(description="what it said at its worst, the last time")
+    peak_s: float = Field(description="when, s since the recording start")
 
 
 class AlarmList(BaseModel):

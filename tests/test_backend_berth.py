@@ -287,6 +287,11 @@ def test_approach_alarms_depend_on_the_distance_amber_then_red():
     book.update(state, [], m)
     eased = _approach(book)["approach-bow"]
     assert eased["severity"] == "warning" and eased["acknowledged"]
+    # ... and the run's list keeps the red it was, with what it said then (a user trial:
+    # every red alarm of a replay was listed afterwards as the amber it had eased to)
+    listed = next(a for a in book.all() if a["id"] == eased["id"])
+    assert listed["peak_severity"] == "alarm" and "50 cm/s" in listed["peak_message"]
+    assert "25 cm/s" in listed["message"]
     # speeding up again: a new red alarm, sounding (not acknowledged)
     state, m = _closing(8.0, 0.35)
     book.update(state, [], m)
