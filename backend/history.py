@@ -210,10 +210,9 @@ class History:
             "samples": int(keep.sum()),
             "phases": counts,
             "aligned_at_s": round(aligned[0] - self.start_gpst, 6),
-            "horizontal_error_m": _stats(np.linalg.norm(est_pos[keep, :2] - ref_pos[keep, :2],
-                                                        axis=1), t_rel, signed=False),
-            "absolute_horizontal_error_m": _stats(np.linalg.norm(
-                abs_pos[keep, :2] - ref_pos[keep, :2], axis=1), t_rel, signed=False),
+            "horizontal_error_m": _horizontal(est_pos[keep, :2] - ref_pos[keep, :2], t_rel),
+            "absolute_horizontal_error_m": _horizontal(abs_pos[keep, :2] - ref_pos[keep, :2],
+                                                       t_rel),
             "vertical_error_m": _stats(est_pos[keep, 2] - ref_pos[keep, 2], t_rel, signed=True),
             "heading_error_deg": _stats(np.degrees(wrap_angle(est_yaw[keep]
                                                               - ref_euler[keep, 2])),
@@ -224,6 +223,15 @@ class History:
 def _beyond(t: float, last: float) -> str:
     return (f"no fused pose at t = {t:g} s: the last is at {last:.3f} s (not replayed yet, "
             "or no position since: see the session's integrity)")
+
+
+def _horizontal(e: np.ndarray, t_rel: np.ndarray) -> dict[str, float]:
+    """Statistics of the horizontal distance of the (N, 2) errors ``e``; its std is the 2-D
+    error's, sqrt(var_N + var_E), as ``replay --report`` gives it (table 17), not the
+    distance's own (a user trial read two different "std" of one run)."""
+    out = _stats(np.linalg.norm(e, axis=1), t_rel, signed=False)
+    out["std"] = float(np.sqrt(np.var(e[:, 0]) + np.var(e[:, 1])))
+    return out
 
 
 def _stats(e: np.ndarray, t_rel: np.ndarray, signed: bool) -> dict[str, float]:

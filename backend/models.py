@@ -560,9 +560,11 @@ class ApproachLimits(Strict):
 
 class ErrorStats(BaseModel):
     rms: float
-    std: float
-    mean: float
-    max: float
+    std: float = Field(description="horizontal errors: sqrt(var_N + var_E) of the 2-D error, "
+                                   "as `berthing-aid replay --report` (table 17); others: the "
+                                   "signed error's")
+    mean: float = Field(description="horizontal errors: of the distance; others: signed")
+    max: float = Field(description="of the absolute error")
     max_at_s: float
 
 
@@ -575,7 +577,10 @@ class Report(BaseModel):
     samples: int
     phases: dict[str, int]
     aligned_at_s: float = Field(description="the fused trajectory is matched to the reference "
-                                            "at its first pose (it starts from its own origin)")
+                                            "at its first pose (it starts from its own origin); "
+                                            "`replay --report` matches it at the origin's time, "
+                                            "up to a second earlier, so its figures differ by "
+                                            "the fused error over that second")
     horizontal_error_m: ErrorStats
     absolute_horizontal_error_m: ErrorStats = Field(
         description="from the fused latitude/longitude (SPP-anchored origin), not aligned")

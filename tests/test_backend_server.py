@@ -203,6 +203,17 @@ def test_pose_history_trajectory_structure_prediction_report(live: Live, replaye
         report = client.get(f"{base}/report").json()
         assert report["samples"] == traj["count"]
         assert 0.0 <= report["horizontal_error_m"]["rms"] < 10.0
+        # its horizontal std is the 2-D error's, as the replay report's table 17 gives it
+        ref = live.rec.reference
+        gpst = live.rec.manifest.start_gpst + np.asarray(traj["t"], float)
+        est = np.asarray(traj["position_ned"], float)
+        p_ref = ref.interpolate(gpst)[0]
+        e = est + (p_ref[0] - est[0]) - p_ref  # matched at the first pose (aligned_at_s)
+        assert report["aligned_at_s"] == pytest.approx(traj["t"][0], abs=1e-6)
+        dist = np.hypot(e[:, 0], e[:, 1])  # (the trajectory's positions to 0.1 mm)
+        assert report["horizontal_error_m"]["std"] == pytest.approx(
+            np.sqrt(np.var(e[:, 0]) + np.var(e[:, 1])), abs=5e-5)  # (|e|'s own: 3e-4 off)
+        assert report["horizontal_error_m"]["max"] == pytest.approx(dist.max(), abs=5e-5)
         assert np.isfinite(report["heading_error_deg"]["max"])
         # out of range and wrongly typed queries
         for params, status in (({"t": 100.0}, 422), ({"t": -1}, 422), ({"t": "soon"}, 422)):
