@@ -80,7 +80,9 @@ class IntegrityConfig:
     max_force_step: float = 30.0  # m/s² between consecutive samples
     frozen_samples: int = 20  # the same raw sample this many times running: frozen
     # GNSS checks
-    receiver_silent_epochs: int = 3  # epochs without a receiver before it is declared silent
+    # epochs without a receiver before it is declared silent: the first (they come each
+    # second, and a sensor that fails is said within a second; a user trial waited 3 s)
+    receiver_silent_epochs: int = 1
     gnss_silent_s: float = 2.5  # no GNSS epoch at all for this long (they come each second)
     slip_burst_fraction: float = 0.5  # this share of the tracked signals slipping at once
     clock_jump_m: float = 3000.0  # common change of all ranges beyond the drift (1 µs ≈ 300 m)
@@ -272,8 +274,9 @@ class IntegrityMonitor:
             if self._rx_missing[i] >= self.cfg.receiver_silent_epochs:
                 # the compass and the single differences take the first receiver they have
                 # as the reference: three are enough for the whole attitude
-                self.raise_fault(kind, t, f"receiver {i + 1} silent for "
-                                 f"{self._rx_missing[i]} epochs: {_attitude_left(left)}")
+                n = self._rx_missing[i]
+                self.raise_fault(kind, t, f"receiver {i + 1} silent for {n} "
+                                 f"epoch{'s' if n > 1 else ''}: {_attitude_left(left)}")
         self.check_streams(t)
         return True
 
