@@ -53,6 +53,7 @@ JPEG_QUALITY = 80
 STREAM_MAX_WIDTH = 1280
 FRAME_BUFFER = 30  # recent frames kept (3 s): a click on a frame just shown, catch-up
 STRUCTURE_EVERY = 10  # frames between structure snapshots while not shown (a seek)
+NO_PICTURE = np.zeros((0, 0, 3), np.uint8)  # what a listener gets between frames (on_tick)
 
 
 
@@ -227,8 +228,10 @@ class Session:
 
     def on_tick(self, t: float, state: Any, engine: FusionEngine) -> None:
         """The fusion's state at gpst ``t`` between frames (a live camera silent while the
-        other sensors go on): the pose, the alarms and the berth figures go on from it; the
-        page, whose picture is old, is not sent a frame (it says "no frames" on its own)."""
+        other sensors go on): the pose, the alarms, the berth figures and the frame listeners
+        (the bridge's heading, the 3-D view's track: they read the state, not the picture)
+        go on from it; the page, whose picture is old, is not sent a frame (it says "no
+        frames" on its own)."""
         alerts = list(getattr(engine, "alerts", list)())
         state = copy.deepcopy(state) if state is not None else None
         pose = state if is_current(state, t) else None
@@ -238,6 +241,13 @@ class Session:
                 self.alarms.update(state, alerts, self.berth.metrics(pose))
             if pose is not None:
                 self.history.append(t, pose)
+            listeners = list(self.frame_listeners)
+        result = FrameResult(-1, t, NO_PICTURE, state, True, time.time())
+        for listener in listeners:
+            try:
+                listener(self, result)
+            except Exception:
+                log.exception("frame listener failed on a tick")
 
     def on_rewind(self, t: float | None) -> None:
         with self.lock:

@@ -392,6 +392,13 @@ def test_a_live_camera_gone_silent_leaves_no_stale_pose(sim_recording: Path):
 
     live_rec = copy.copy(rec)  # the runner lists the frames it got in its recording
     manager = SessionManager(RecordingCatalog(None, sim_recording), create_engine)
+    heard: list[float] = []  # what a frame listener (the bridge, the 3-D view) is told
+
+    def listen(session, result):
+        heard.append(result.t)
+        assert result.state is not None and result.live
+
+    manager.created_listeners.append(lambda s: s.frame_listeners.append(listen))
     session = manager.add(live_rec, "live-test", lambda make_engine, s: LiveRunner(
         Source(), make_engine, s, live_rec, None, messages[0]),
         FusionOptionsModel().model_dump())
@@ -406,5 +413,6 @@ def test_a_live_camera_gone_silent_leaves_no_stale_pose(sim_recording: Path):
         assert status.vo_status == "lost", status
         assert any("no video frame" in r for r in status.integrity.reasons), status.integrity
         assert session.report()["samples"] > 0
+        assert max(heard) > end - 0.6  # the bridge's heading goes on without the camera
     finally:
         manager.close_all()
