@@ -39,7 +39,7 @@ from .alarms import AlarmBook
 from .berth import Berth
 from .catalog import RecordingCatalog
 from .errors import Conflict, NotFound, TooMany, Unprocessable
-from .history import History, is_current
+from .history import FRAME_MATCH_S, History, is_current
 from .overlay import OverlayConfig, build_overlay, pose_dict, status_dict
 from .replay import FrameResult, Replayer, ReplayState, Scout, ScoutPool
 from .targets import Target, TargetBook
@@ -480,6 +480,12 @@ class Session:
             raise Conflict("the replay is seeking: designate on the frame it stops at")
         state = self.current_state() if frame_t is None else self.history.frame_state(frame_t)
         index = self._frame_index(float(state.time))
+        picture_t = float(np.asarray(self.rec.frame_times, dtype=float)[index])
+        if abs(picture_t - float(state.time)) > FRAME_MATCH_S:
+            # a live camera silent while the other sensors go on (``on_tick``): the pose has
+            # moved on from the last picture, and a click on it is no click on the present
+            raise Conflict(f"no picture at {float(state.time) - self.start_gpst:.1f} s: the "
+                           f"camera's last frame is from {picture_t - self.start_gpst:.1f} s")
         with self.lock:
             buffered = list(self._frames)
             structure = self._structure

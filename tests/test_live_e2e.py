@@ -359,6 +359,7 @@ def test_a_live_camera_gone_silent_leaves_no_stale_pose(sim_recording: Path):
     from types import SimpleNamespace
 
     from backend.catalog import RecordingCatalog
+    from backend.errors import Conflict
     from backend.live_session import LiveRunner
     from backend.models import FusionOptionsModel
     from backend.sessions import SessionManager
@@ -414,5 +415,8 @@ def test_a_live_camera_gone_silent_leaves_no_stale_pose(sim_recording: Path):
         assert any("no video frame" in r for r in status.integrity.reasons), status.integrity
         assert session.report()["samples"] > 0
         assert max(heard) > end - 0.6  # the bridge's heading goes on without the camera
+        # a click now would be on the last picture, 4 s old, with the present pose: refused
+        with pytest.raises(Conflict, match="no picture at"):
+            session.designate(None, 400.0, 300.0, None)
     finally:
         manager.close_all()
