@@ -740,3 +740,7 @@ class StreamFrameHeader(BaseModel):
     alarms: list[Alarm] = Field(default_factory=list, description="active alarms")
     live: LiveBrief | None = Field(default=None, description="live session: record indicator "
                                                              "and inputs down; None in replay")
+    picture_t: float | None = Field(
+        default=None, description="s since the start of the picture when it is older than "
+                                  "`t` (a live camera silent while the other sensors go on): "
+                                  "the state is `t`'s, nothing is drawn on the picture")

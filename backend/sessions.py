@@ -242,6 +242,18 @@ class Session:
             if pose is not None:
                 self.history.append(t, pose)
             listeners = list(self.frame_listeners)
+            shown = self._current_frame
+            watched = bool(self._subscribers)
+        if watched and shown is not None:
+            # the page: its last picture again with the state now — the status, the alarms,
+            # the panels and the plan go on; nothing is drawn on the picture (it is old)
+            last = shown[0]
+            try:
+                self._publish(self._frame_message(
+                    FrameResult(last.index, t, last.image, state, True, time.time()), state,
+                    pose, picture_t=last.t))
+            except Exception:
+                log.exception("frame message between frames failed")
         result = FrameResult(-1, t, NO_PICTURE, state, True, time.time())
         for listener in listeners:
             try:
@@ -315,11 +327,13 @@ class Session:
         for sub in subscribers:
             sub.offer(*message)
 
-    def _frame_message(self, result: FrameResult, state: Any | None, pose: Any | None
-                       ) -> tuple[bytes, bytes]:
+    def _frame_message(self, result: FrameResult, state: Any | None, pose: Any | None,
+                       picture_t: float | None = None) -> tuple[bytes, bytes]:
         """Header JSON (without its closing brace: the sender appends its send time) and the
         JPEG of one frame: the fusion's ``state`` says its status, ``pose`` (the state when it
-        is current at the frame, else None) what is drawn."""
+        is current at the frame, else None) what is drawn. ``picture_t``: the gpst of the
+        picture when it is an older one than ``result.t`` (a live camera silent): nothing is
+        drawn on it, and the header says how old it is."""
         ok, jpeg = cv2.imencode(".jpg", stream_picture(result.image),
                                 [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         if not ok:
@@ -367,6 +381,9 @@ class Session:
                 readout.update(berth_line.describe())
             with self.lock:
                 self.targets.readouts(header["overlay"]["targets"])
+            if picture_t is not None:
+                _off_the_picture(header["overlay"])
+        header["picture_t"] = None if picture_t is None else round(picture_t - self.start_gpst, 6)
         text = json.dumps(header, separators=(",", ":"), allow_nan=False)
         return text[:-1].encode(), jpeg.tobytes()
 
@@ -776,3 +793,16 @@ def _return_freed_memory() -> None:
     only returns memory that is already free."""
     if _malloc_trim is not None:
         _malloc_trim(0)
+
+
+def _off_the_picture(overlay: dict[str, Any]) -> None:
+    """An overlay for an old picture: nothing drawn on it (grid, hull, points, predicted
+    outlines, berth line, target marks); the plan and the read-outs stay."""
+    video = overlay["video"]
+    video["hull"], video["prediction"] = [], []
+    video["grid"]["lines"], video["grid"]["nodes"] = [], {"ned": [], "uv": []}
+    video["points"] = {key: [] for key in video["points"]}
+    if overlay.get("berth") is not None:
+        overlay["berth"]["polylines"] = []
+    for target in overlay.get("targets") or []:
+        target["visible"] = False

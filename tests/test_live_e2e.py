@@ -361,7 +361,7 @@ def test_a_live_camera_gone_silent_leaves_no_stale_pose(sim_recording: Path):
     from backend.catalog import RecordingCatalog
     from backend.errors import Conflict
     from backend.live_session import LiveRunner
-    from backend.models import FusionOptionsModel
+    from backend.models import FusionOptionsModel, StreamFrameHeader
     from backend.sessions import SessionManager
     from engine.driver import create_engine
     from engine.messages import FrameMessage, sensor_messages
@@ -400,6 +400,17 @@ def test_a_live_camera_gone_silent_leaves_no_stale_pose(sim_recording: Path):
         assert result.state is not None and result.live
 
     manager.created_listeners.append(lambda s: s.frame_listeners.append(listen))
+    sent: list[dict] = []  # what the page is sent
+
+    class Page:
+        def offer(self, header: bytes, jpeg: bytes | None) -> None:
+            if jpeg is not None:  # a frame (its header without the sender's closing fields)
+                sent.append(json.loads(header + b',"seq":0,"sent_at":0}'))
+
+        def end(self, reason: str) -> None:
+            pass
+
+    manager.created_listeners.append(lambda s: s.subscribe(Page()))
     session = manager.add(live_rec, "live-test", lambda make_engine, s: LiveRunner(
         Source(), make_engine, s, live_rec, None, messages[0]),
         FusionOptionsModel().model_dump())
@@ -415,6 +426,17 @@ def test_a_live_camera_gone_silent_leaves_no_stale_pose(sim_recording: Path):
         assert any("no video frame" in r for r in status.integrity.reasons), status.integrity
         assert session.report()["samples"] > 0
         assert max(heard) > end - 0.6  # the bridge's heading goes on without the camera
+        # the page gets its last picture again with the state now: status, alarms, panels;
+        # nothing drawn on the picture, and it is said how old it is
+        later = [h for h in sent if h["gpst"] > cut + 1.0]
+        assert later and all(h["picture_t"] is not None for h in later)
+        last = later[-1]
+        StreamFrameHeader.model_validate(last)
+        assert last["gpst"] > end - 0.6 and last["picture_t"] <= cut - start + 1e-6
+        assert last["status"]["vo_status"] == "lost" and last["pose"] is not None
+        assert not last["overlay"]["video"]["grid"]["lines"]
+        assert not last["overlay"]["video"]["points"]["uv"]
+        assert all(h["picture_t"] is None for h in sent if h["gpst"] <= cut + 1e-6)
         # a click now would be on the last picture, 4 s old, with the present pose: refused
         with pytest.raises(Conflict, match="no picture at"):
             session.designate(None, 400.0, 300.0, None)
