@@ -62,7 +62,10 @@ def test_monitor_streams_silent_receivers_and_the_clock() -> None:
     m = IntegrityMonitor()
     m.imu(10.0, np.zeros(3), G)
     m.vo_frame(10.0, "")
-    for k in range(1, 4):
+    m.gnss(11.0, [True, True, False, True])
+    # said at its first missing epoch: a sensor that fails is said within a second
+    assert m.is_active("receiver-3-silent") and "1 epoch:" in m.active["receiver-3-silent"].message
+    for k in range(2, 4):
         m.gnss(10.0 + k, [True, True, False, True])
     assert m.is_active("receiver-3-silent")
     assert "works with the other antennas" in m.active["receiver-3-silent"].message
