@@ -302,9 +302,7 @@ class LiveRunner:
         if last is None or t - last.t < self._video_silent_s or t - self._ticked < QUIET_TICK_S:
             return
         self._ticked = t
-        on_tick = getattr(self._sink, "on_tick", None)
-        if on_tick is not None:
-            on_tick(t, engine.state(at=t), engine)
+        self._sink.on_tick(t, engine.state(at=t), engine)
 
     def _quiet(self, engine: FusionEngine, t: float) -> None:
         """Every sensor silent until ``t``: the engine declares it, and the page gets the

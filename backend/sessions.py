@@ -197,19 +197,13 @@ class Session:
                 self._timing = dict(engine.timing())
             except Exception:  # the structure is a by-product: never stop the replay for it
                 log.exception("engine.structure(), solved_views() or timing() failed")
-        state = copy.deepcopy(result.state) if result.state is not None else None
-        # A state left behind its frame (no IMU since) says why in its status; it is no pose
-        # of this frame: no overlay, berth figures, trajectory row or target view from it.
-        pose = state if is_current(state, result.t) else None
+        state, pose = self._fused(result.state, result.t)
         with self.lock:
             if structure is not None:
                 self._structure = structure
             self._frames.append((result.index, result.t, result.image))
-            if state is not None:
-                self._last_state = state
-                self.alarms.update(state, alerts, self.berth.metrics(pose))
+            self._take(result.t, state, pose, alerts)
             if pose is not None:
-                self.history.append(result.t, pose)
                 self.targets.on_frame(pose, result.index, result.image, self._structure)
             watched = bool(self._subscribers)
             listeners = list(self.frame_listeners)
@@ -220,33 +214,22 @@ class Session:
                 self._publish(self._frame_message(result, state, pose))
             except Exception:  # a bad overlay must not stop the replay: log, send none
                 log.exception("frame message of frame %d failed", result.index)
-        for listener in listeners:
-            try:
-                listener(self, result)
-            except Exception:
-                log.exception("frame listener failed")
+        self._tell(listeners, result)
 
     def on_tick(self, t: float, state: Any, engine: FusionEngine) -> None:
         """The fusion's state at gpst ``t`` between frames (a live camera silent while the
         other sensors go on): the pose, the alarms, the berth figures and the frame listeners
         (the bridge's heading, the 3-D view's track: they read the state, not the picture)
-        go on from it; the page, whose picture is old, is not sent a frame (it says "no
-        frames" on its own)."""
+        go on from it, and the page gets its last picture again with it (``picture_t``:
+        nothing drawn on that old picture)."""
         alerts = list(getattr(engine, "alerts", list)())
-        state = copy.deepcopy(state) if state is not None else None
-        pose = state if is_current(state, t) else None
+        state, pose = self._fused(state, t)
         with self.lock:
-            if state is not None:
-                self._last_state = state
-                self.alarms.update(state, alerts, self.berth.metrics(pose))
-            if pose is not None:
-                self.history.append(t, pose)
+            self._take(t, state, pose, alerts)
             listeners = list(self.frame_listeners)
             shown = self._current_frame
             watched = bool(self._subscribers)
         if watched and shown is not None:
-            # the page: its last picture again with the state now — the status, the alarms,
-            # the panels and the plan go on; nothing is drawn on the picture (it is old)
             last = shown[0]
             try:
                 self._publish(self._frame_message(
@@ -254,12 +237,31 @@ class Session:
                     pose, picture_t=last.t))
             except Exception:
                 log.exception("frame message between frames failed")
-        result = FrameResult(-1, t, NO_PICTURE, state, True, time.time())
+        self._tell(listeners, FrameResult(-1, t, NO_PICTURE, state, True, time.time()))
+
+    @staticmethod
+    def _fused(state: Any | None, t: float) -> tuple[Any | None, Any | None]:
+        """The engine's state at gpst ``t`` (a copy: the engine goes on) and the same as the
+        pose there, or None: a state left behind (no IMU since) says why in its status; it
+        is no pose of ``t`` — no overlay, berth figures, trajectory row or target view."""
+        state = copy.deepcopy(state) if state is not None else None
+        return state, state if is_current(state, t) else None
+
+    def _take(self, t: float, state: Any | None, pose: Any | None, alerts: list[Any]) -> None:
+        """The alarms and the trajectory from a state at gpst ``t`` (lock held)."""
+        if state is not None:
+            self._last_state = state
+            self.alarms.update(state, alerts, self.berth.metrics(pose))
+        if pose is not None:
+            self.history.append(t, pose)
+
+    def _tell(self, listeners: list[Callable[[Session, FrameResult], None]],
+              result: FrameResult) -> None:
         for listener in listeners:
             try:
                 listener(self, result)
             except Exception:
-                log.exception("frame listener failed on a tick")
+                log.exception("frame listener failed")
 
     def on_rewind(self, t: float | None) -> None:
         with self.lock:
