@@ -15,6 +15,7 @@ a few cm per minute of trajectory otherwise).
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Collection, Iterable, Sequence
 
 import numpy as np
@@ -38,7 +39,7 @@ from .cpp import (
     velocity_map,
 )
 from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput, chi2_gate
-from .frames import ecef_to_ned, ned_to_ecef
+from .frames import dcm_to_rotvec, ecef_to_ned, ned_to_ecef, rotvec_to_dcm
 from .gnss_epochs import N_RECEIVERS, GnssFront
 from .integrity import IntegrityMonitor
 from .options import FusionOptions, WorldOrigin
@@ -56,6 +57,10 @@ SD_INCONSISTENT_FRACTION = 0.5  # this share of the single differences rejected:
 MIN_ATTITUDE_ROWS = 8  # single differences for the attitude check (3 unknowns, a few over)
 ATTITUDE_MIN_SPREAD = 0.3  # the least scatter of their stated σ the attitude check assumes
 ATTITUDE_DELAY_SIGMA_M = 0.005  # rows whose delay is less sure than this do not judge it
+# The gyro's turn is compared with the single differences' heading over these spans: a bias
+# step of half a degree per second shows in a second or two, where one epoch's attitude check
+# (its σ a few tenths of a degree) sees nothing.
+GYRO_CHECK_WINDOWS_S = (3.0, 6.0)
 
 
 class SdIntegers:
@@ -146,6 +151,63 @@ class SdIntegers:
                     self.drop([k for k in list(self.A) if k[1] == sat] if whole else [key])
 
 
+class GyroCheck:
+    """The gyro's turn over a few seconds (``Ins.C_gyro``: integrated from the calibrated
+    gyro, never corrected by the EKF) against that of the heading the single differences give
+    at each epoch on their own (``CarrierPhaseCoupling._check_attitude``'s fit): the arbiter
+    when the VO and the gyro disagree (``vo_coupling.VoConsistency``), which alone cannot say
+    which of the two is off. A bias step of the gyro turns both the VO's check and the
+    heading; declared as the gyro's, the VO's rotation is not judged by it meanwhile.
+
+    The heading (about the level down axis) only: the tilt axes, on simulated small boats
+    rolling in a swell, disagree beyond the gate on clean recordings (their χ² up to 30
+    against 10 for the heading over 25 seeds), and the tilt has gravity to hold it."""
+
+    def __init__(self, cfg: EkfConfig) -> None:
+        self.cfg = cfg
+        self.gate = chi2_gate(1, cfg.gate_probability)
+        # (t, attitude by the single differences, its covariance (level axes), C_gyro, the
+        # EKF's gyro bias variance then, whether the gyro measured the rotation up to then)
+        self._seen: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray, float, bool]] = \
+            deque()
+
+    def check(self, t: float, C_sd: np.ndarray, P_sd: np.ndarray, C_gyro: np.ndarray,
+              bias_var: float, measured: bool = True) -> tuple[float, float] | None:
+        """Add an epoch's attitudes (body to level); the worst disagreeing window ending at
+        it as (angle rad, window s), None if none. ``bias_var``: the EKF's gyro bias variance
+        ((rad/s)², largest axis): what the calibrated gyro may still be off — at a window's
+        start, for it (a widening since, by the VO's check, must not hide the step).
+        ``measured`` False: an IMU gap was bridged on the held mean rate up to this epoch;
+        the windows holding it judge nothing."""
+        seen = self._seen
+        if seen and t <= seen[-1][0]:
+            seen.clear()  # time went back (a seek): nothing to compare with
+        seen.append((t, C_sd, P_sd, C_gyro, bias_var, measured))
+        while len(seen) > 1 and t - seen[1][0] >= max(GYRO_CHECK_WINDOWS_S) - 1e-6:
+            seen.popleft()
+        worst, worst_nis = None, self.gate
+        for window in GYRO_CHECK_WINDOWS_S:
+            old = next((e for e in reversed(seen) if t - e[0] >= window - 1e-6), None)
+            if old is None or not all(e[5] for e in seen if e[0] >= old[0]):
+                continue
+            span = t - old[0]
+            # rotation from then to now, by the single differences and by the gyro, in level
+            # axes at the start (where the attitudes' errors are stated): its down component
+            off = float((old[1] @ dcm_to_rotvec((old[1].T @ C_sd) @ (old[3].T @ C_gyro).T))[2])
+            S = old[2][2, 2] + P_sd[2, 2] + self.cfg.gyro_arw**2 * span + old[4] * span**2
+            if off**2 / S > worst_nis:
+                worst, worst_nis = (abs(off), span), off**2 / S
+        return worst
+
+    def restart(self) -> None:
+        """Forget the epochs so far (the gyro's bias was widened: judged afresh)."""
+        self._seen.clear()
+
+    def spans(self, t: float) -> float:
+        """How long (s) the epochs kept span up to ``t``."""
+        return t - self._seen[0][0] if self._seen else 0.0
+
+
 class CarrierPhaseCoupling:
     """One GNSS epoch into the running EKF: η (or v), ζ, the delays, the SPP aiding."""
 
@@ -166,6 +228,7 @@ class CarrierPhaseCoupling:
         # the trajectory error the satellites' correlated rate errors have integrated to
         # since the INS started (the EKF takes them as white)
         self.drift = CorrelatedDrift()
+        self.gyro = GyroCheck(config)
 
     def update(self, t: float, epochs: list[GnssEpoch | None], ekf: ErrorStateEkf,
                origin: WorldOrigin, front: GnssFront) -> None:
@@ -369,7 +432,9 @@ class CarrierPhaseCoupling:
         off, inv, spread, _keep = fit
         # their own scatter (in units of the σ they state, which is generous: ~0.3), not
         # less than ATTITUDE_MIN_SPREAD of it
-        S = ekf.covariance(ix.E) + inv * max(spread, ATTITUDE_MIN_SPREAD) ** 2
+        P_sd = inv * max(spread, ATTITUDE_MIN_SPREAD) ** 2
+        self._check_gyro(rotvec_to_dcm(-off) @ ekf.nominal.C_body_to_level, P_sd, ekf)
+        S = ekf.covariance(ix.E) + P_sd
         if self._agrees("ins-attitude", off, S, ekf.time,
                         "INS attitude agrees with the single differences again"):
             return
@@ -380,6 +445,28 @@ class CarrierPhaseCoupling:
             "ins-attitude", ekf.time,
             f"INS attitude {math.degrees(angle):.1f}° off the single differences of "
             f"{len(sd_rows)} satellite pairs that agree: INS taken back to them")
+
+    def _check_gyro(self, C_sd: np.ndarray, P_sd: np.ndarray, ekf: ErrorStateEkf) -> None:
+        """The gyro against the single differences' attitude ``C_sd`` (covariance ``P_sd``)
+        over seconds (``GyroCheck``): beyond the gate, declared ("gyro") and its bias σ
+        widened to the rate it is off by, so that the VO and the single differences teach
+        the EKF the new bias within seconds; cleared once the longest window agrees."""
+        bias_var = float(np.linalg.eigvalsh(ekf.covariance(ekf.ix.BG))[-1])
+        found = self.gyro.check(ekf.time, C_sd, P_sd, ekf.ins.C_gyro.copy(), bias_var,
+                                not any(map(self.monitor.is_active, ("imu-gap", "imu-silent"))))
+        if found is None:
+            if self.monitor.is_active("gyro") \
+                    and self.gyro.spans(ekf.time) >= max(GYRO_CHECK_WINDOWS_S) - 1e-6:
+                self.monitor.clear("gyro", ekf.time,
+                                   "gyro agrees with the carrier-phase heading again")
+            return
+        angle, span = found
+        rate = angle / span
+        ekf.inflate(0.0, 0.0, 0.0, gyro_bias=math.sqrt(max(rate**2 - bias_var, 0.0)))
+        self.gyro.restart()
+        self.monitor.raise_fault(
+            "gyro", ekf.time, f"gyro turned {math.degrees(angle):.1f}° off the carrier-phase "
+            f"heading in {span:.0f} s: its bias re-learned from the carrier phase and the VO")
 
     def _agrees(self, kind: str, off: np.ndarray, S: np.ndarray, t: float,
                 cleared: str) -> bool:

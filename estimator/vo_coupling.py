@@ -54,6 +54,10 @@ MAX_PULL_DEG = 3.0
 # agrees again sooner): it is restarted, if the fused track it disagrees with rests on the
 # carrier phase (coasting on the INS, the fused track is the doubtful one).
 VO_RESTART_AFTER_S = 15.0
+# Faults under which the gyro's rotation judges no VO (``_Seen.gyro_measured``): an IMU gap
+# bridged on the held mean rate (its frames are applied as it is bridged), a silent IMU, a
+# gyro found off the carrier-phase heading.
+GYRO_UNMEASURED = ("imu-gap", "imu-silent", "gyro")
 
 
 @dataclass(frozen=True)
@@ -79,6 +83,10 @@ class _Seen:
     # the fused velocity's covariance (3,3) in L, (m/s)², while the fused track is not on the
     # carrier phase (coasting); None while it is (its displacement then good to millimetres)
     coasting_velocity_cov: np.ndarray | None
+    # the gyro measured the rotation up to here: False across an IMU gap (``C_gyro`` then
+    # turns on the held mean rate) or while the gyro itself is declared off
+    # (``carrier_phase.GyroCheck``): a window holding such a frame judges no rotation
+    gyro_measured: bool = True
 
 
 
@@ -122,7 +130,9 @@ class VoConsistency:
             old = next((e for e in reversed(seen) if now.t - e.t >= window - 1e-6), None)
             if old is None:
                 continue
-            for found in (self._rotation(old, now), self._direction(old, now)):
+            measured = all(e.gyro_measured for e in seen if e.t >= old.t)
+            rotation = self._rotation(old, now) if measured else None
+            for found in (rotation, self._direction(old, now)):
                 if found is not None and found.nis > self.gates[found.what] and \
                         (worst is None or found.nis > worst.nis):
                     worst = found
@@ -234,9 +244,12 @@ class VoCoupling:
             np.asarray(out.camera_position_world, float), ekf.ins.C_gyro.copy(),
             ekf.camera_attitude(), ekf.camera_position(),
             math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0)),
-            None if carrier_fresh else ekf.P[ekf.ix.V, ekf.ix.V].copy()))
+            None if carrier_fresh else ekf.P[ekf.ix.V, ekf.ix.V].copy(),
+            self.monitor is None or not any(map(self.monitor.is_active, GYRO_UNMEASURED))))
         if bad is not None:
-            off = f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}° off over {bad.window_s:.0f} s"
+            judge = "the gyro" if bad.what == "rotation" else "the fused track"
+            off = (f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}° off {judge} over "
+                   f"{bad.window_s:.0f} s")
             if not self.excluded:
                 # What it may have pulled the attitude by: widen the attitude σ so much. A
                 # rotation the gyro disagrees with may be the gyro's fault (a bias step) as
