@@ -9,6 +9,11 @@ it is active) and clears by itself when its cause has gone.
 - **faults** the engine raised (``Fusion.alerts()``, severity ``warning``: a receiver silent,
   an IMU gap bridged, frames skipped …) stay listed while active.
 
+An alarm that comes back within ``REARM_S`` of clearing, no higher than it was, is the same
+alarm again (its acknowledgement kept, ``repeats`` counted), not a new one sounding: a
+protection level hovering at its limit, or IMU spikes every half second, had the officer
+acknowledging a dozen alarms in a few seconds for one cause (a user trial).
+
 - **berthing** (``approach-bow``, ``approach-stern``): the bow or stern closing the berth line
   faster than the approach-speed limit for its distance (``ApproachLimit`` table, tighter as
   the distance shrinks, in the spirit of berthing-velocity guidance): severity ``warning``
@@ -45,6 +50,7 @@ DEFAULT_APPROACH_LIMITS = (
     ApproachLimit(50.0, 80.0, 120.0),
 )
 CLEAR_FRACTION = 0.9  # an approach alarm clears below this fraction of its limit (no chatter)
+REARM_S = 5.0  # an alarm back within this of clearing is the same alarm again
 HISTORY_MAX = 1000  # alarms a session lists (a live one runs for hours)
 SEVERITY_RANK = {"caution": 0, "warning": 1, "alarm": 2}
 
@@ -73,18 +79,23 @@ class AlarmEntry:
     peak_severity: str = ""
     peak_message: str = ""
     peak_s: float = 0.0
+    first_message: str = ""  # what it said when raised: the cause, as later words replace it
+    cleared_s: float | None = None  # when it last cleared (None: active, or never)
+    repeats: int = 0  # times it came back within REARM_S of clearing
 
     def __post_init__(self) -> None:
         if not self.peak_severity:
             self.peak_severity, self.peak_message, self.peak_s = \
                 self.severity, self.message, self.since_s
+        self.first_message = self.first_message or self.message
 
     def as_dict(self) -> dict[str, Any]:
         return {"id": self.id, "kind": self.kind, "severity": self.severity,
                 "message": self.message, "since_s": round(self.since_s, 3),
                 "active": self.active, "acknowledged": self.acknowledged,
                 "peak_severity": self.peak_severity, "peak_message": self.peak_message,
-                "peak_s": round(self.peak_s, 3)}
+                "peak_s": round(self.peak_s, 3), "first_message": self.first_message,
+                "repeats": self.repeats}
 
 
 class AlarmBook:
@@ -101,16 +112,19 @@ class AlarmBook:
         self.approach_limits: tuple[ApproachLimit, ...] = DEFAULT_APPROACH_LIMITS
 
     def update(self, state: Any, engine_alerts: list[Any],
-               berth: dict[str, float | None] | None = None) -> None:
-        """A new state, the engine's alert history so far and the berth geometry at that
-        state (``geometry.berth_metrics``; None without a berth line)."""
+               berth: dict[str, float | None] | None = None,
+               engine_active: list[Any] = ()) -> None:
+        """A new state, the engine's alert history so far, the berth geometry at that
+        state (``geometry.berth_metrics``; None without a berth line) and the engine's active
+        alerts, whose current words replace those they were raised with (a receiver "silent
+        for 1 epoch" while silent for ten)."""
         integrity = getattr(state.status, "integrity", None)
         t = float(state.time) - self.start_gpst
         with self._lock:
             if integrity is not None:
                 if integrity.trusted:
                     self._was_trusted = True
-                    self._clear("integrity")
+                    self._clear("integrity", t)
                 elif self._was_trusted:
                     self._raise("integrity", "alarm", t, "Integrity lost: " + (
                         integrity.reasons[0] if integrity.reasons else integrity.mode))
@@ -120,8 +134,14 @@ class AlarmBook:
                                 self._was_trusted else "warning",
                                 alert.t - self.start_gpst, alert.message)
                 else:
-                    self._clear(alert.kind)
+                    self._clear(alert.kind, alert.t - self.start_gpst)
             self._seen_alerts = len(engine_alerts)
+            for alert in engine_active:
+                entry = self._alarms.get(alert.kind)
+                if entry is not None and entry.active and entry.message != alert.message:
+                    entry.message = alert.message
+                    if entry.severity == entry.peak_severity:
+                        entry.peak_message = alert.message
             trusted = integrity is None or integrity.trusted
             for end in ("bow", "stern"):
                 self._approach(end, t, berth if trusted else None)
@@ -134,7 +154,7 @@ class AlarmBook:
         row = None if distance is None else approach_limit(self.approach_limits,
                                                            max(distance, 0.0))
         if row is None or closing is None:
-            self._clear(kind)
+            self._clear(kind, t)
             return
         current = self._alarms.get(kind)
         active = current.severity if current is not None and current.active else None
@@ -146,7 +166,7 @@ class AlarmBook:
                                            closing > CLEAR_FRACTION * row.warning_cms):
             severity, limit = "warning", row.warning_cms
         else:
-            self._clear(kind)
+            self._clear(kind, t)
             return
         # held by the hysteresis below its limit: say so, or the figures contradict it
         held = "" if closing > limit else f", held until below {CLEAR_FRACTION * limit:.0f}"
@@ -161,9 +181,15 @@ class AlarmBook:
 
     def _raise(self, kind: str, severity: str, t: float, message: str) -> None:
         current = self._alarms.get(kind)
-        if current is not None and current.active and \
+        back = current is not None and not current.active and current.cleared_s is not None \
+            and 0.0 <= t - current.cleared_s <= REARM_S
+        if current is not None and (current.active or back) and \
                 SEVERITY_RANK[severity] <= SEVERITY_RANK[current.severity]:
-            # still the same alarm (or eased to a lower level): keep its acknowledgement
+            # still the same alarm (or eased to a lower level, or back at once after
+            # clearing): keep its acknowledgement
+            if back:
+                current.active, current.cleared_s = True, None
+                current.repeats += 1
             current.message, current.severity = message, severity
             if severity == current.peak_severity:
                 current.peak_message, current.peak_s = message, t  # its latest words at the peak
@@ -175,9 +201,10 @@ class AlarmBook:
         self._alarms[kind] = entry
         self._history.append(entry)
 
-    def _clear(self, kind: str) -> None:
-        if kind in self._alarms:
-            self._alarms[kind].active = False
+    def _clear(self, kind: str, t: float) -> None:
+        current = self._alarms.get(kind)
+        if current is not None and current.active:
+            current.active, current.cleared_s = False, t
 
     def rewind(self) -> None:
         """The replay went back: the alarms are those of the new run."""

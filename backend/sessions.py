@@ -190,7 +190,7 @@ class Session:
 
     def on_frame(self, result: FrameResult, engine: FusionEngine) -> None:
         structure = None
-        alerts = list(getattr(engine, "alerts", list)())
+        alerts = _engine_alerts(engine)
         if result.live or result.index % STRUCTURE_EVERY == 0:
             try:
                 structure = Structure.of(engine, result.t)
@@ -222,7 +222,7 @@ class Session:
         (the bridge's heading, the 3-D view's track: they read the state, not the picture)
         go on from it, and the page gets its last picture again with it (``picture_t``:
         nothing drawn on that old picture)."""
-        alerts = list(getattr(engine, "alerts", list)())
+        alerts = _engine_alerts(engine)
         state, pose = self._fused(state, t)
         with self.lock:
             self._take(t, state, pose, alerts)
@@ -247,11 +247,13 @@ class Session:
         state = copy.deepcopy(state) if state is not None else None
         return state, state if is_current(state, t) else None
 
-    def _take(self, t: float, state: Any | None, pose: Any | None, alerts: list[Any]) -> None:
-        """The alarms and the trajectory from a state at gpst ``t`` (lock held)."""
+    def _take(self, t: float, state: Any | None, pose: Any | None,
+              alerts: tuple[list[Any], list[Any]]) -> None:
+        """The alarms and the trajectory from a state at gpst ``t`` (lock held); ``alerts``:
+        the engine's alert history and its active alerts (``_engine_alerts``)."""
         if state is not None:
             self._last_state = state
-            self.alarms.update(state, alerts, self.berth.metrics(pose))
+            self.alarms.update(state, alerts[0], self.berth.metrics(pose), alerts[1])
         if pose is not None:
             self.history.append(t, pose)
 
@@ -795,6 +797,13 @@ def _return_freed_memory() -> None:
     only returns memory that is already free."""
     if _malloc_trim is not None:
         _malloc_trim(0)
+
+
+def _engine_alerts(engine: FusionEngine) -> tuple[list[Any], list[Any]]:
+    """The engine's alert history and its active alerts with their current words (an engine
+    without them: none)."""
+    return (list(getattr(engine, "alerts", list)()),
+            list(getattr(engine, "active_alerts", list)()))
 
 
 def _off_the_picture(overlay: dict[str, Any]) -> None:

@@ -77,6 +77,9 @@ class FusionEngine(Protocol):
     # The faults the engine raised and cleared (``estimator.integrity.Alert``), in time order.
     def alerts(self) -> list: ...
 
+    # The faults active now, each with its current words (a count that goes on, an age).
+    def active_alerts(self) -> list: ...
+
 
 # (calibration, nav, options as a dict of FusionOptions fields) -> engine
 EngineFactory = Callable[[Calibration, NavigationData, dict[str, Any]], FusionEngine]

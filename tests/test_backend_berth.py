@@ -319,3 +319,52 @@ def test_approach_alarms_depend_on_the_distance_amber_then_red():
     state, m = _closing(5.0, 0.6, trusted=False)
     book.update(state, [], m)
     assert _approach(book) == {}
+
+
+def test_an_alarm_back_within_seconds_is_the_same_alarm_again():
+    """A heading protection level hovering at its limit flips the trust every second, and
+    IMU spikes raise and clear a critical fault every half second: each was a new sounding
+    alarm (a user trial counted twelve in 3 s for one cause). Back within ``REARM_S`` of
+    clearing, no higher than it was, it is the same alarm again, counted, its acknowledgement
+    kept and its first words (the cause) kept; back later it is a new one."""
+    from backend.alarms import REARM_S
+    from estimator.integrity import Alert
+
+    def state(t: float, trusted: bool, reason: str = "") -> SimpleNamespace:
+        return SimpleNamespace(time=t, status=SimpleNamespace(integrity=SimpleNamespace(
+            trusted=trusted, reasons=[reason] if reason else [], mode="fused")))
+
+    book = AlarmBook(0.0)
+    book.update(state(1.0, True), [])
+    book.update(state(2.0, False, "no IMU sample for over 0.3 s"), [])
+    first = book.active()[0]
+    book.acknowledge(first["id"])
+    for k in range(6):  # hovering: trusted, then not, every half second
+        book.update(state(2.5 + k, True), [])
+        assert not book.active()
+        book.update(state(3.0 + k, False, "heading protection level 1.02° above the 1° "
+                                          "alert limit"), [])
+    listed = book.all()
+    assert len(listed) == 1 and listed[0]["id"] == first["id"], listed
+    assert listed[0]["active"] and listed[0]["acknowledged"] and listed[0]["repeats"] == 6
+    assert "heading protection level" in listed[0]["message"]
+    assert listed[0]["first_message"] == "Integrity lost: no IMU sample for over 0.3 s"
+    # trusted for longer than REARM_S, then lost: a new alarm, sounding
+    book.update(state(9.0, True), [])
+    book.update(state(9.0 + REARM_S + 0.5, False, "no IMU sample for over 0.3 s"), [])
+    assert [a["id"] != first["id"] and not a["acknowledged"] for a in book.active()] == [True]
+    # a critical engine fault raised and cleared by every spike: one alarm, counted
+    alerts = []
+    for k in range(6):
+        alerts += [Alert(20.0 + 0.5 * k, "imu-implausible", "IMU sample implausible: dropped"),
+                   Alert(20.1 + 0.5 * k, "imu-implausible", "IMU samples plausible", False)]
+        book.update(state(20.2 + 0.5 * k, True), alerts)
+    spikes = [a for a in book.all() if a["kind"] == "imu-implausible"]
+    assert len(spikes) == 1 and spikes[0]["repeats"] == 5 and not spikes[0]["active"]
+    # an active fault's words go on (its count): the alarm says them, its first words kept
+    alerts.append(Alert(30.0, "receiver-2-silent", "receiver 2 silent for 1 epoch"))
+    book.update(state(30.0, True), alerts)
+    later = Alert(30.0, "receiver-2-silent", "receiver 2 silent for 10 epochs")
+    book.update(state(39.0, True), alerts, None, [later])
+    rx = next(a for a in book.active() if a["kind"] == "receiver-2-silent")
+    assert rx["message"] == later.message and rx["first_message"].endswith("1 epoch")

@@ -40,7 +40,7 @@ export class Alarms {
     }
     // Rebuilt only when the list changes: a button re-created every frame could not be clicked
     // (a message whose figures change is updated in place)
-    const key = JSON.stringify(this.current.map((a) => [a.id, a.severity, a.acknowledged]));
+    const key = JSON.stringify(this.current.map((a) => [a.id, a.severity, a.acknowledged, a.repeats]));
     if (key !== this.shownKey) {
       this.shownKey = key;
       this.list.replaceChildren(...this.current.map((a) => this._item(a)));
@@ -70,7 +70,9 @@ export class Alarms {
     text.textContent = a.message;
     const since = document.createElement("span");
     since.className = "alarm-since muted small";
-    since.textContent = `${a.since_s.toFixed(1)} s`;
+    // back within seconds of clearing: the same alarm, counted (not a new one sounding)
+    since.textContent = `${a.since_s.toFixed(1)} s${a.repeats ? ` · ${a.repeats + 1}×` : ""}`;
+    if (a.first_message && a.first_message !== a.message) li.title = `first: ${a.first_message}`;
     li.append(text, since);
     if (!a.acknowledged && a.severity === "alarm") {
       const b = document.createElement("button");
