@@ -229,7 +229,9 @@ class FusionStatusModel(BaseModel):
     phase: str = Field(description="initialising | aligning | fused | degraded")
     compass_fixed: bool
     satellites: int
-    vo_status: str
+    vo_status: str = Field(description="tracking | initialising | lost | excluded (off the "
+                                       "gyro or the fused track) | skipped (unusable frames: "
+                                       "black, blinded, frozen) | off")
     scale: float | None
     scale_converged: bool
     message: str
@@ -742,5 +744,6 @@ class StreamFrameHeader(BaseModel):
                                                              "and inputs down; None in replay")
     picture_t: float | None = Field(
         default=None, description="s since the start of the picture when it is older than "
-                                  "`t` (a live camera silent while the other sensors go on): "
-                                  "the state is `t`'s, nothing is drawn on the picture")
+                                  "`t` (a live camera silent while the other sensors go on, "
+                                  "or frozen on an old picture): the state is `t`'s, nothing "
+                                  "is drawn on the picture")

@@ -336,8 +336,11 @@ class Session:
         """Header JSON (without its closing brace: the sender appends its send time) and the
         JPEG of one frame: the fusion's ``state`` says its status, ``pose`` (the state when it
         is current at the frame, else None) what is drawn. ``picture_t``: the gpst of the
-        picture when it is an older one than ``result.t`` (a live camera silent): nothing is
-        drawn on it, and the header says how old it is."""
+        picture when it is an older one than ``result.t`` (a live camera silent; a frozen one
+        repeating it, ``FusionStatus.picture_since``): nothing is drawn on it, and the header
+        says how old it is."""
+        if picture_t is None and state is not None:
+            picture_t = getattr(state.status, "picture_since", None)
         ok, jpeg = cv2.imencode(".jpg", stream_picture(result.image),
                                 [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         if not ok:
@@ -507,6 +510,10 @@ class Session:
             # moved on from the last picture, and a click on it is no click on the present
             raise Conflict(f"no picture at {float(state.time) - self.start_gpst:.1f} s: the "
                            f"camera's last frame is from {picture_t - self.start_gpst:.1f} s")
+        frozen = getattr(state.status, "picture_since", None)
+        if frozen is not None:  # the picture is an older one again: the same
+            raise Conflict(f"the camera is frozen at {float(state.time) - self.start_gpst:.1f} "
+                           f"s: its picture is the one of {frozen - self.start_gpst:.1f} s")
         with self.lock:
             buffered = list(self._frames)
             structure = self._structure

@@ -95,6 +95,11 @@ class IntegrityConfig:
     # Mean grey-level change from the last frame below this: the same frame again (a re-encoded
     # repeat differs by ~0.001; a live camera's noise alone by ~1).
     frozen_level: float = 0.05
+    # A feed found frozen stays so until this many frames running each differ from the one
+    # before: an encoder refreshing a frozen picture (each keyframe, every 12 frames of a
+    # re-encoded copy) changes it by up to ~1.6 for a frame or two, and the freeze must not
+    # clear, the VO take a 5 s old picture and the page draw on it, at each refresh.
+    frozen_clear_frames: int = 10
 
     def k(self, dof: int) -> float:
         """Multiple of σ that the error exceeds with probability ``integrity_risk``."""
@@ -401,28 +406,44 @@ class IntegrityMonitor:
 
 class FrameCheck:
     """Is a frame fit for the VO? Black, blinded (saturated) and frozen (the very frame again)
-    frames are not (``IntegrityConfig`` levels). Stateful: it remembers the last frame."""
+    frames are not (``IntegrityConfig`` levels). Stateful: it remembers the last frame, and a
+    frozen feed until it moves again (``frozen_clear_frames``)."""
 
     def __init__(self, config: IntegrityConfig | None = None) -> None:
         self.cfg = config or IntegrityConfig()
         self._last: np.ndarray | None = None
+        self._last_t = math.nan
+        self._moving = 0  # frames running that differed from the one before
+        # time of the picture a frozen feed keeps repeating (None: not frozen)
+        self.still_since: float | None = None
 
-    def problem(self, image: np.ndarray) -> str:
-        """Why the frame is unusable, "" when it is fine."""
+    def problem(self, image: np.ndarray, t: float = math.nan) -> str:
+        """Why the frame (at time ``t``) is unusable, "" when it is fine."""
         cfg = self.cfg
         small = np.ascontiguousarray(np.asarray(image)[::8, ::8])
         grey = small.astype(np.float32)
         if grey.ndim == 3:  # the channels' mean (OpenCV's per-pixel transform: numpy's is slow)
             grey = cv2.transform(grey, np.full((1, grey.shape[2]), 1.0 / grey.shape[2]))
         last, self._last = self._last, small
+        last_t, self._last_t = self._last_t, float(t)
+        if last is not None and last.shape == small.shape:
+            if cv2.norm(small, last, cv2.NORM_L1) / small.size < cfg.frozen_level:
+                self._moving = 0
+                if self.still_since is None:
+                    self.still_since = last_t
+            else:
+                self._moving += 1
+                if self._moving >= cfg.frozen_clear_frames:
+                    self.still_since = None
         level = float(grey.mean())
         if level < cfg.dark_level:
             return f"video black (mean level {level:.0f})"
         if level > cfg.bright_level or np.mean(grey >= 250) > cfg.saturated_fraction:
             return f"video blinded (mean level {level:.0f})"
-        if last is not None and last.shape == small.shape and cv2.norm(
-                small, last, cv2.NORM_L1) / small.size < cfg.frozen_level:
-            return "video frozen (the same frame again)"
+        if self.still_since is not None:
+            age = float(t) - self.still_since
+            return "video frozen (the same picture" + \
+                (f" for {age:.1f} s)" if math.isfinite(age) else " again)")
         return ""
 
 
@@ -431,7 +452,7 @@ def checked_vo(vo: VisualOdometry, check: FrameCheck, t: float, image: np.ndarra
     """The VO's output of a frame, or, for a frame unfit for it, an output that says why
     (status "skipped"; the VO's state untouched). The engine and the evaluation's VO pass
     both go through here. ``prepared``: the VO's ``prepare`` of the image, made ahead."""
-    problem = check.problem(image)
+    problem = check.problem(image, t)
     if not problem:
         return vo.process(t, image, prepared)
     return VoOutput(time=float(t), status="skipped", segment=-1, C_world_to_camera=None,

@@ -55,6 +55,9 @@ class FusionStatus:
     scale_converged: bool
     message: str
     integrity: Integrity | None = None  # mode, trust, protection levels (None: not assessed)
+    # gpst of the picture a frozen camera keeps repeating (``FrameCheck.still_since``; None:
+    # the picture is current): nothing may be drawn on it
+    picture_since: float | None = None
 
 
 @dataclass

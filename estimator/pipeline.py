@@ -290,6 +290,8 @@ class Fusion:
             vo_status = "excluded"  # tracking, but off the gyro or the fused track
         if self.monitor.is_active("video-silent"):
             vo_status = "lost"  # its last output is no longer what the camera sees
+        elif self.monitor.is_active("video") and self.options.use_vo:
+            vo_status = "skipped"  # the frames are unusable (black, blinded, frozen)
         scale = None
         converged = False
         if ekf is not None and ekf.vo is not None and vo_status == "tracking":
@@ -309,11 +311,17 @@ class Fusion:
         return FusionStatus(phase=phase, compass_fixed=fixed,
                             satellites=carrier.n_sats if gnss else 0,
                             vo_status=vo_status, scale=scale, scale_converged=converged,
-                            message=message, integrity=integrity)
+                            message=message, integrity=integrity,
+                            picture_since=self.frame_check.still_since)
 
     def alerts(self) -> list[Alert]:
         """Every fault raised (and cleared) so far, in time order (``estimator.integrity``)."""
         return list(self.monitor.alerts)
+
+    def active_alerts(self) -> list[Alert]:
+        """The faults active now, each with its current message (the history keeps the words
+        it was raised with: "silent for 1 epoch" of a receiver silent for ten)."""
+        return list(self.monitor.active.values())
 
     def solved_views(self) -> SolvedViews | None:
         """The landmark window's views with their solved attitudes (``SolvedViews``), for

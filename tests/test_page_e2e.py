@@ -67,15 +67,18 @@ def recording(sim_recording: Path) -> Path:
 
 
 FAULTY = "small-boat-12s-imu-gap"
+FROZEN = "small-boat-12s-video-frozen"
 
 
 @pytest.fixture(scope="session")
 def faulty_recordings(recording: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A directory with a damaged copy of the recording: 2 s of IMU missing from 6 s."""
+    """A directory with damaged copies of the recording: 2 s of IMU missing from 6 s; the
+    camera frozen on one picture from 6 s for 3 s (re-encoded: refreshed at its keyframes)."""
     from recordings.faults import inject
 
     root = tmp_path_factory.mktemp("faulty")
     inject(recording, "imu-gap:6:2", root / FAULTY)
+    inject(recording, "video-frozen:6:3", root / FROZEN)
     return root
 
 
@@ -426,6 +429,47 @@ def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server:
         assert np.all(np.diff(t) > 0) and not np.any((t > 6.6) & (t < 8.0)), t[55:90]
         _wait(pg, "!b.alarms.list.some(a => a.kind === 'integrity')", 5)
         shot(pg, "07_integrity_recovered")
+    finally:
+        _close(pg, server)
+
+
+def test_a_frozen_camera_is_said_and_nothing_is_drawn_on_its_old_picture(browser,
+                                                                         server: str) -> None:
+    """The camera repeats one picture from 6 s for 3 s while the pose goes on (a user trial:
+    the freeze was declared, then cleared at each of the copy's keyframes, and at 6.5 s the
+    page drew the overlay of now on the picture of 6 s, the VO chip green, no notice). The
+    whole freeze is one: the VO chip says the frames are skipped, nothing is drawn on the old
+    picture, the notice says how old it is, a click on it is refused; after it, all as
+    before."""
+    pg = _open_page(browser, server, 1280, 800, f"?recording={FROZEN}")
+    try:
+        assert wait_frame(pg, "f => f.t > 4 && b.trust.trusted", timeout_s=60)
+        pg.select_option("#speed", "0.5")
+        frozen = []
+        for t in (6.6, 7.3, 8.0, 8.7):  # the keyframes refresh the copy every 1.2 s
+            f = wait_frame(pg, f"f => f.t >= {t}", timeout_s=30)
+            frozen.append(f)
+            assert f["t"] < 9.0, f["t"]
+            assert f["picture_t"] is not None and 5.8 <= f["picture_t"] <= 6.1, f["picture_t"]
+            assert f["status"]["vo_status"] == "skipped", f["status"]
+            video = f["overlay"]["video"]
+            assert video["hull"] == [] and video["grid"]["lines"] == [], t
+            assert pg.locator("#st-vo .v").inner_text() == "skipped"
+            assert "Camera picture" in pg.locator("#untrusted").inner_text()
+        shot(pg, "07_video_frozen")
+        sid = pg.evaluate("() => window.berthing.session.id")
+        # a click on a frozen frame (the one on screen a moment ago): refused
+        body = json.dumps({"u": 480, "v": 300, "frame_time": frozen[-1]["t"]}).encode()
+        req = urllib.request.Request(f"{server}/api/sessions/{sid}/targets", data=body,
+                                     headers={"Content-Type": "application/json"},
+                                     method="POST")
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(req, timeout=30)
+        assert refused.value.code == 409 and "frozen" in refused.value.read().decode()
+        pg.select_option("#speed", "1")
+        back = wait_frame(pg, "f => f.t >= 10.5", timeout_s=30)
+        assert back["picture_t"] is None and back["status"]["vo_status"] != "skipped", back
+        assert back["overlay"]["video"]["grid"]["lines"], "the overlay is drawn again"
     finally:
         _close(pg, server)
 

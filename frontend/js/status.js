@@ -37,6 +37,10 @@ export function assess(frame) {
   } else if (st.phase !== "fused" && st.phase !== "degraded") {
     reasons.push(`${st.phase} — ${st.message || "no trusted position"}`);
   }
+  // the picture is an older one (a camera silent or frozen): the server drew nothing on it
+  if (frame.picture_t != null) {
+    reasons.push(`Camera picture ${Math.max(frame.t - frame.picture_t, 0).toFixed(1)} s old — nothing drawn on it`);
+  }
   if (st.phase === "degraded") advisories.push("Coasting — no carrier-phase velocity, position drifting");
   if (st.vo_status === "lost") advisories.push("Visual odometry lost — 3-D points not updated");
   else if (st.vo_status === "excluded") {
