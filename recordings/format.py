@@ -879,7 +879,33 @@ def check_manifest(path: str | Path) -> tuple[Path, Manifest]:
         raise RecordingError(f"{manifest_path}: missing manifest (not a recording directory?)")
     manifest = _parse_manifest(manifest_path)
     _check_files_exist(root, manifest_path, manifest.files)
+    if not _cut_short(manifest):
+        _check_whole_lines(root, manifest.files)
     return root, manifest
+
+
+# The line-oriented files: each record a line, the last one ended like the others
+_TEXT_FILE_KEYS = ("frame_times", "imu", "gnss_obs", "gnss_nav", "reference", "scene_points")
+
+
+def _check_whole_lines(root: Path, files: dict[str, Any]) -> None:
+    """Each text file ends with a line end: one that stops inside a line was cut short (a
+    copy or a download broken off). Its last byte only, so a listing can afford it and says
+    what opening it would (a user trial: a recording listed fine, then refused on open);
+    a live recording that did not end cleanly is let through (``load`` leaves its torn
+    record out)."""
+    for key in _TEXT_FILE_KEYS:
+        value = files.get(key)
+        for rel in value if isinstance(value, list) else [value] if value else []:
+            path = root / rel
+            size = path.stat().st_size
+            if not size:
+                continue
+            with path.open("rb") as f:
+                f.seek(size - 1)
+                if f.read(1) not in (b"\n", b"\r"):
+                    raise RecordingError(f"{path}: ends inside a line, the file was cut short "
+                                         f"({size} bytes)")
 
 
 def load(path: str | Path, *, load_gnss: bool = True) -> Recording:

@@ -65,7 +65,7 @@ def recordings_dir(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory
     (bare / "manifest.json").write_text(json.dumps(manifest))
     # damaged copies: the hull file gone (seen from the manifest), an IMU value not a number
     # (seen only when the data are read)
-    for name, lost in (("no-hull", "hull.json"), ("bad-imu", "imu.csv")):
+    for name, lost in (("no-hull", "hull.json"), ("bad-imu", "imu.csv"), ("cut-obs", "gnss")):
         (d / name).mkdir()
         for item in sim_recording.iterdir():
             if item.name != lost:
@@ -73,6 +73,14 @@ def recordings_dir(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory
     lines = (sim_recording / "imu.csv").read_text().splitlines()
     lines[50] = lines[50].split(",", 1)[0] + ",nan" + lines[50].split(",", 1)[1][1:]
     (d / "bad-imu" / "imu.csv").write_text("\n".join(lines) + "\n")
+    # a receiver's file cut short inside a line (a copy broken off): seen from its last byte
+    (d / "cut-obs" / "gnss").mkdir()
+    for item in (sim_recording / "gnss").iterdir():
+        (d / "cut-obs" / "gnss" / item.name).symlink_to(item)
+    cut = d / "cut-obs" / "gnss" / "rx3.obs"
+    data = cut.read_bytes()
+    cut.unlink()
+    cut.write_bytes(data[:len(data) // 2].rstrip(b"\n"))
     return d
 
 
@@ -134,6 +142,10 @@ def test_recordings_listing_and_summary(ref_live: Live):
         names = {r["name"]: r for r in client.get("/api/recordings").json()["recordings"]}
         assert "imu.csv" in names["bad-imu"]["problem"], names["bad-imu"]
         assert "not-a-recording" not in names
+        # a file cut short is listed as such before anyone opens it, in the words opening says
+        assert "rx3.obs: ends inside a line" in names["cut-obs"]["problem"], names["cut-obs"]
+        r = client.get("/api/recordings/cut-obs")
+        assert r.status_code == 422 and names["cut-obs"]["problem"] in r.json()["detail"]
         info = client.get(f"/api/recordings/{RECORDING}").json()
         assert info["video"]["frame_times"] == 121 and info["reference"]["present"]
         assert "path" not in info  # the server's file layout stays private

@@ -121,8 +121,9 @@ def test_torn_last_writes_load_with_a_note(cut_recording: Path, tmp_path: Path):
 def test_a_truncated_file_of_a_finished_recording_is_still_an_error(cut_recording: Path,
                                                                     tmp_path: Path):
     """Only a live recording that did not end cleanly is read up to a torn end: in any other
-    recording a file cut short is damage, and loading says so."""
-    from recordings.format import RecordingError, load
+    recording a file cut short is damage, and loading says so — and so does the listing's
+    check, which reads no data (a user trial: a cut file listed fine, refused on open)."""
+    from recordings.format import RecordingError, check_manifest, load
 
     done = tmp_path / "done"
     shutil.copytree(cut_recording, done)
@@ -130,5 +131,7 @@ def test_a_truncated_file_of_a_finished_recording_is_still_an_error(cut_recordin
     manifest["live"]["complete"] = True
     (done / "manifest.json").write_text(json.dumps(manifest))
     (done / "imu.csv").write_bytes((done / "imu.csv").read_bytes()[:-25])
-    with pytest.raises(RecordingError, match=r"imu\.csv: line \d+: 6 columns"):
-        load(done)
+    for check in (load, check_manifest):
+        with pytest.raises(RecordingError, match=r"imu\.csv: ends inside a line, the file was "
+                                                 r"cut short"):
+            check(done)
