@@ -24,6 +24,7 @@ from .cpp import (
     FIT_UNKNOWNS,
     MIN_FIT_SATELLITES,
     SAME_CARRIER_SYSTEMS,
+    AtmosphereActivity,
     CorrelatedDrift,
     EpochGeometry,
     EtaRow,
@@ -228,6 +229,7 @@ class CarrierPhaseCoupling:
         # the trajectory error the satellites' correlated rate errors have integrated to
         # since the INS started (the EKF takes them as white)
         self.drift = CorrelatedDrift()
+        self.activity = AtmosphereActivity()  # scales the drift and its overbound
         self.gyro = GyroCheck(config)
 
     def update(self, t: float, epochs: list[GnssEpoch | None], ekf: ErrorStateEkf,
@@ -253,7 +255,7 @@ class CarrierPhaseCoupling:
                                        cfg.tdcp_rate_sigma), rows[0].interval)
                 found = velocity_map(rows, origin.C_ecef_to_level, cfg.tdcp_rate_sigma)
                 if found is not None:
-                    self.drift.interval(*found, rows[0].interval)
+                    self.drift.interval(*found, rows[0].interval, self.activity.scale)
         # Single differences: integers re-resolved after slips, rows for the attitude.
         self.integers.drop([key for key in slips if key in self.integers.A])
         sd_rows: list[SdRow] = []
@@ -266,8 +268,11 @@ class CarrierPhaseCoupling:
             self._spp_aiding(front.spp_ecef, ekf, origin)
         ekf.clone(t)
         front.advance(epochs, geo)
+        active = self.activity.scale
         self.message = (f"{self.n_sats} sats in the velocity, {self.n_sd_sats} in the single "
-                        f"differences; gate rejections {_gate_text(ekf)}")
+                        f"differences; gate rejections {_gate_text(ekf)}"
+                        + (f"; atmosphere {active:.1f}x as active as a quiet day's: the drift "
+                           "bound widened" if active > 1.05 else ""))
 
     def _apply(self, rows: Sequence[EtaRow], sd_rows: Sequence[SdRow], ekf: ErrorStateEkf,
                origin: WorldOrigin) -> set[str]:
@@ -307,6 +312,9 @@ class CarrierPhaseCoupling:
                 used = set()
         taken, innovation = self._innovations(eta, ekf)
         fit = self._fit(taken, innovation, ekf)
+        if fit is not None and fit.satellites >= MIN_FIT_SATELLITES and taken:
+            self.activity.add(fit.scatter, taken[0].interval)  # (robust: its scatter measured)
+            self.monitor.drift_scale = self.activity.scale
         if fit is not None and not (suspect and fit.satellites < MIN_FIT_SATELLITES):
             self._check_velocity(fit, ekf)
         self._check_attitude(sd_rows, ekf)

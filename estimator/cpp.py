@@ -398,18 +398,21 @@ class CorrelatedDrift:
     covariance of the integrated error and its cross-covariance with each satellite's current
     error (a satellite that sets takes its correlation with it). ``sigma_mps`` and ``tau_s``:
     fitted to the real static pair (``benchmarks/calibration.py``, one receiver alone, the
-    1-σ of its horizontal drift over windows of 30–180 s within 15 %)."""
+    1-σ of its horizontal drift over windows of 30–180 s within 15 %) — a quiet day: on a
+    more active one the errors are larger, and ``interval`` takes them scaled by the
+    activity measured (``AtmosphereActivity``)."""
 
     sigma_mps: float = 0.0005
     tau_s: float = 30.0
     cov: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     _cross: dict[str, np.ndarray] = field(default_factory=dict)
 
-    def interval(self, sats: Sequence[str], L: np.ndarray, dt: float) -> None:
+    def interval(self, sats: Sequence[str], L: np.ndarray, dt: float,
+                 scale: float = 1.0) -> None:
         """One interval of ``dt`` s whose velocity took the satellites' errors through
-        ``L`` (3 x n, ``velocity_map``)."""
+        ``L`` (3 x n, ``velocity_map``), their σ ``scale`` times the quiet day's."""
         rho = math.exp(-dt / self.tau_s)
-        var = self.sigma_mps**2
+        var = (scale * self.sigma_mps) ** 2
         cross = {s: rho * c for s, c in self._cross.items() if s in sats}
         for j, s in enumerate(sats):
             lever = L[:, j] * dt
@@ -417,6 +420,43 @@ class CorrelatedDrift:
             self.cov += np.outer(lever, c) + np.outer(c, lever) + var * np.outer(lever, lever)
             cross[s] = c + var * lever
         self._cross = cross
+
+
+# The real static pair's rate error common to a satellite's antennas, beyond the phase noise:
+# 0.7-2.5 mm/s per satellite (``benchmarks/calibration.py``), the day ``CorrelatedDrift`` was
+# fitted on. More than this in the epochs' fits: a more active atmosphere.
+QUIET_SCATTER_MPS = 0.0015
+
+
+@dataclass
+class AtmosphereActivity:
+    """How active the atmosphere and the signals are against the quiet day the drift model
+    was fitted on: the epochs' TDCP scatter (``TdcpFit.scatter``, what the satellites' common
+    rate errors leave after the fit), its RMS over ``tau_s``, over ``QUIET_SCATTER_MPS``, not
+    below 1. The fit cannot see the errors' slow part (it moves the trajectory), but in the
+    simulated world and, by their physics, in the real one both come with the same
+    irregularities: of nine small-boat seeds, the three whose trajectories drifted 4-13x
+    their σ were the three whose scatter was 3.8-9.8 mm/s RMS, against 0.1-1.0 for the six
+    others (``benchmarks/position_consistency.py``)."""
+
+    tau_s: float = 30.0
+    _mean_square: float | None = None
+
+    def add(self, scatter_mps: float, dt: float) -> None:
+        """One epoch's fit scatter, ``dt`` s after the last."""
+        x = scatter_mps**2
+        if self._mean_square is None:
+            self._mean_square = x
+        else:
+            w = 1.0 - math.exp(-max(dt, 0.0) / self.tau_s)
+            self._mean_square += w * (x - self._mean_square)
+
+    @property
+    def scale(self) -> float:
+        """The errors' σ against the quiet day's (≥ 1)."""
+        if self._mean_square is None:
+            return 1.0
+        return max(1.0, math.sqrt(self._mean_square) / QUIET_SCATTER_MPS)
 
 
 def atmosphere_corrected(rows: Sequence[EtaRow], prev: EpochGeometry, curr: EpochGeometry,

@@ -18,10 +18,12 @@ Three parts (the concepts of GNSS integrity, thesis-independent; ``docs/referenc
   risk: ``k`` times the 1-σ (major axis of the horizontal covariance; the heading σ), ``k``
   from the χ² quantile of the integrity risk, plus the error a fault just below the detection
   thresholds could leave (``IntegrityConfig.undetected_*``) and, for the HPL, an overbound of
-  the correlated carrier-phase drift the filter does not model. The horizontal covariance is
-  the filter's plus what the world origin's error has driven: the carrier phase's satellite
-  geometry is computed at the standalone fix, metres off, and that drifts the trajectory
-  ~0.1 mm/s per metre for as long as it runs (``origin_drift_cov``). The state is
+  the correlated carrier-phase drift the filter does not model (b·√t on a day like the real
+  pair's, growing faster while the atmosphere is more active: ``cpp.AtmosphereActivity``).
+  The horizontal covariance is the filter's plus what the world origin's error has driven:
+  the carrier phase's satellite geometry is computed at the standalone fix, metres off, and
+  that drifts the trajectory ~0.1 mm/s per metre for as long as it runs
+  (``origin_drift_cov``). The state is
   **trusted** when the mode is usable, no critical fault is active and both levels are within
   their alert limits (default 0.5 m, 1°).
 
@@ -67,7 +69,10 @@ class IntegrityConfig:
     # (atmosphere residuals, multipath) and the trajectory drifts from where the fusion started
     # more than its σ grows. Overbound of that drift, added to the HPL: b·√(t − start). From
     # the real static pair (benchmarks/calibration.py, one receiver alone, the worst window):
-    # 20 mm in 10 s, 32 in 30, 46 in 60, 58 in 120 → b = 6 mm/√s bounds every window.
+    # 20 mm in 10 s, 32 in 30, 46 in 60, 58 in 120 → b = 6 mm/√s bounds every window. Its
+    # variance grows with the square of the measured activity (``drift_scale``): on a seed
+    # whose atmosphere was 2.5x as active the trajectory drifted 0.16 m in 70 s against an
+    # HPL of 0.18 m.
     # (The reported position σ holds that drift's 1-σ, ``cpp.CorrelatedDrift``; k times it
     # would be ~3x the worst window seen, so the HPL keeps this overbound instead.)
     drift_m_per_sqrt_s: float = 0.006
@@ -153,6 +158,12 @@ class IntegrityMonitor:
         self.alerts: list[Alert] = []  # history, raised and cleared
         self.last_input = -math.inf  # gpst of the newest input of any kind
         self.anchored_at: float | None = None  # gpst of the first filter state (world anchor)
+        # The carrier-phase drift's overbound (``IntegrityConfig.drift_m_per_sqrt_s``), its
+        # variance accumulated since the anchor with the atmosphere's activity (its errors'
+        # σ against the quiet day's, ``cpp.AtmosphereActivity``: set by the carrier phase)
+        self.drift_scale = 1.0
+        self._drift_var = 0.0
+        self._drift_t: float | None = None
         # The standalone fix the carrier phase's geometry is computed at (the world origin):
         # its error covariance (NED, m²) and the trajectory's accumulated sensitivity to it
         # (m of position per m of origin error, ``cpp.origin_sensitivity`` times the interval).
@@ -340,6 +351,16 @@ class IntegrityMonitor:
 
     # -------------------------------------------------------------------------- state
 
+    def _drift_bound(self, t: float) -> float:
+        """The drift overbound at ``t``: b·√(t − anchor) on a quiet day, its variance
+        growing with the activity's square while it lasts."""
+        assert self._drift_t is not None
+        if t > self._drift_t:
+            self._drift_var += (self.cfg.drift_m_per_sqrt_s * self.drift_scale) ** 2 \
+                * (t - self._drift_t)
+            self._drift_t = t
+        return math.sqrt(self._drift_var)
+
     def origin_fix(self, covariance_ned: np.ndarray) -> None:
         """The world origin's standalone-fix covariance (NED, m²)."""
         self.origin_cov = np.asarray(covariance_ned, float)
@@ -379,10 +400,10 @@ class IntegrityMonitor:
         hpl = hdg = None
         if position_cov is not None and heading_var is not None and mode != "no position":
             if self.anchored_at is None:
-                self.anchored_at = t
+                self.anchored_at = self._drift_t = t
             horizontal = np.asarray(position_cov, float)[:2, :2] + self.origin_drift_cov()[:2, :2]
             major = float(np.linalg.eigvalsh(horizontal)[-1])
-            drift = cfg.drift_m_per_sqrt_s * math.sqrt(max(t - self.anchored_at, 0.0))
+            drift = self._drift_bound(t)
             hpl = cfg.k(2) * math.sqrt(max(major, 0.0)) + cfg.undetected_horizontal_m + drift
             hdg = cfg.k(1) * math.degrees(math.sqrt(max(heading_var, 0.0))) \
                 + cfg.undetected_heading_deg
