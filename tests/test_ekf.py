@@ -213,42 +213,14 @@ def test_an_active_atmosphere_widens_the_drift_it_drives(monkeypatch):
     overbound in the HPL grow with it (``cpp.AtmosphereActivity``). As the server runs it:
     with the recording's sea-surface height."""
     from estimator.cpp import AtmosphereActivity
-    from recordings.sim.scenarios import SCENARIOS
-    from recordings.sim.simulate import SEA_SURFACE_SIGMA_M, charted_sea_surface
-    from recordings.sim.variety import seeded
+    from evaluation.consistency import position_consistency
 
-    seed = 187
-    sc = seeded(SCENARIOS["small-boat"], seed)
-    run = simulate_sensors(sc, seed, 80.0)
-    options = FusionOptions(use_vo=False, landmarks=None,
-                            body_origin_height_m=-sc.reference_point_down_m,
-                            sea_surface=(charted_sea_surface(sc.origin_llh_deg[2], seed),
-                                         SEA_SURFACE_SIGMA_M))
-
-    def figures() -> tuple[float, float, float]:
-        f = Fusion(run.calibration, run.nav, options)
-        p0, nees, ratio = None, [], []
-        for k, _t in run.feed(f):
-            if f.ekf is None or k % 10:
-                continue
-            if p0 is None:
-                p0 = run.motion.state(f.origin_time - sc.start_gpst).position_ned[0]
-            s = f.state()
-            t = s.time - sc.start_gpst
-            if t < 20.0:
-                continue
-            e = (s.position_ned - (run.motion.state(t).position_ned[0] - p0))[:2]
-            W = s.position_cov[:2, :2] + s.position_drift_cov[:2, :2]
-            nees.append(e @ np.linalg.solve(W, e) / 2.0)
-            ratio.append(float(np.hypot(*e)) / s.status.integrity.hpl_m)
-        return float(np.mean(nees)), float(np.max(ratio)), f.carrier.activity.scale
-
-    nees, ratio, activity = figures()
-    assert activity > 1.8, activity
-    assert nees < 3.5 and ratio < 0.7, (nees, ratio)
+    found = position_consistency("small-boat", 187, duration_s=80.0)
+    assert found["activity_end"] > 1.8, found
+    assert found["nees"] < 3.5 and found["max_error_to_hpl"] < 0.7, found
     monkeypatch.setattr(AtmosphereActivity, "scale", property(lambda _self: 1.0))
-    quiet_nees, quiet_ratio, _ = figures()  # the quiet day's model: the σ does not cover
-    assert quiet_nees > 6.0 and quiet_ratio > 0.85, (quiet_nees, quiet_ratio)
+    quiet = position_consistency("small-boat", 187, duration_s=80.0)  # the quiet day's model
+    assert quiet["nees"] > 6.0 and quiet["max_error_to_hpl"] > 0.85, quiet
 
 
 def test_two_receivers_left_start_from_the_course_and_stay_honest(sim):
