@@ -447,6 +447,15 @@ class FrameCheck:
             grey = cv2.transform(grey, np.full((1, grey.shape[2]), 1.0 / grey.shape[2]))
         last, self._last = self._last, small
         last_t, self._last_t = self._last_t, float(t)
+        level = float(grey.mean())
+        problem = ""
+        if level < cfg.dark_level:
+            problem = f"video black (mean level {level:.0f})"
+        elif level > cfg.bright_level or np.mean(grey >= 250) > cfg.saturated_fraction:
+            problem = f"video blinded (mean level {level:.0f})"
+        if problem:  # (black frames are alike, not a picture frozen)
+            self.still_since, self._moving = None, 0
+            return problem
         if last is not None and last.shape == small.shape:
             if cv2.norm(small, last, cv2.NORM_L1) / small.size < cfg.frozen_level:
                 self._moving = 0
@@ -456,11 +465,6 @@ class FrameCheck:
                 self._moving += 1
                 if self._moving >= cfg.frozen_clear_frames:
                     self.still_since = None
-        level = float(grey.mean())
-        if level < cfg.dark_level:
-            return f"video black (mean level {level:.0f})"
-        if level > cfg.bright_level or np.mean(grey >= 250) > cfg.saturated_fraction:
-            return f"video blinded (mean level {level:.0f})"
         if self.still_since is not None:
             age = float(t) - self.still_since
             return "video frozen (the same picture" + \

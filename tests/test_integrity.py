@@ -164,6 +164,10 @@ def test_a_frozen_feed_stays_frozen_through_its_encoders_refreshes() -> None:
     n = check.cfg.frozen_clear_frames
     assert all("frozen" in p for p in after[:n - 1]) and all(p == "" for p in after[n - 1:])
     assert check.still_since is None
+    # black frames are alike but not a frozen picture: the video is usable as it comes back
+    for k in range(5):
+        assert "black" in check.problem(np.zeros_like(still), t + 3.0 + 0.1 * k)
+    assert check.problem(moving[30], t + 3.5) == "" and check.still_since is None
 
 
 # ------------------------------------------------------------------------ fault injection
