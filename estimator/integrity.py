@@ -105,6 +105,10 @@ class IntegrityConfig:
     # re-encoded copy) changes it by up to ~1.6 for a frame or two, and the freeze must not
     # clear, the VO take a 5 s old picture and the page draw on it, at each refresh.
     frozen_clear_frames: int = 10
+    # A protection level that went beyond its alert limit is back within it at this fraction
+    # of it: hovering at the limit (a heading PL converging through 1.00°) flipped the trust,
+    # the overlay's colours and an alarm every second (a user trial).
+    pl_rearm_fraction: float = 0.95
 
     def k(self, dof: int) -> float:
         """Multiple of σ that the error exceeds with probability ``integrity_risk``."""
@@ -140,6 +144,16 @@ class Integrity:
     heading_alert_limit_deg: float = 1.0
 
 
+def _beyond(what: str, level: float, unit: str, limit: float, within: float) -> str:
+    """Why a protection level ``level`` is not trusted against ``limit``: beyond it, or
+    not yet back under ``within`` of it."""
+    sep = " " if unit == "m" else ""
+    if level > limit:
+        return f"{what} {level:.2f}{sep}{unit} above the {limit:g}{sep}{unit} alert limit"
+    return (f"{what} {level:.2f}{sep}{unit} not yet back under {within * limit:.2f}{sep}{unit} "
+            f"({100 * within:.0f} % of the {limit:g}{sep}{unit} alert limit)")
+
+
 def _attitude_left(receivers: int) -> str:
     """What the carrier-phase attitude still has with ``receivers`` tracking."""
     if receivers >= MIN_RECEIVERS:
@@ -164,6 +178,7 @@ class IntegrityMonitor:
         self.drift_scale = 1.0
         self._drift_var = 0.0
         self._drift_t: float | None = None
+        self._pl_over = False  # a protection level went beyond its limit (``pl_rearm_fraction``)
         # The standalone fix the carrier phase's geometry is computed at (the world origin):
         # its error covariance (NED, m²) and the trajectory's accumulated sensitivity to it
         # (m of position per m of origin error, ``cpp.origin_sensitivity`` times the interval).
@@ -408,18 +423,20 @@ class IntegrityMonitor:
             hdg = cfg.k(1) * math.degrees(math.sqrt(max(heading_var, 0.0))) \
                 + cfg.undetected_heading_deg
         critical = [a for k, a in self.active.items() if k in CRITICAL]
-        trusted = (mode in USABLE_MODES and not critical and hpl is not None
-                   and hpl <= cfg.alert_limit_m and hdg is not None
-                   and hdg <= cfg.heading_alert_limit_deg)
+        within = cfg.pl_rearm_fraction if self._pl_over else 1.0
+        hpl_ok = hpl is not None and hpl <= within * cfg.alert_limit_m
+        hdg_ok = hdg is not None and hdg <= within * cfg.heading_alert_limit_deg
+        if hpl is not None and hdg is not None:
+            self._pl_over = not (hpl_ok and hdg_ok)
+        trusted = mode in USABLE_MODES and not critical and hpl_ok and hdg_ok
         # why it is not trusted first (the page and the alarm show the first), then the
         # faults the fusion works around
         reasons = [a.message for a in critical]
-        if hpl is not None and hpl > cfg.alert_limit_m:
-            reasons.append(f"protection level {hpl:.2f} m above the {cfg.alert_limit_m:g} m "
-                           "alert limit")
-        if hdg is not None and hdg > cfg.heading_alert_limit_deg:
-            reasons.append(f"heading protection level {hdg:.2f}° above the "
-                           f"{cfg.heading_alert_limit_deg:g}° alert limit")
+        if hpl is not None and not hpl_ok:
+            reasons.append(_beyond("protection level", hpl, "m", cfg.alert_limit_m, within))
+        if hdg is not None and not hdg_ok:
+            reasons.append(_beyond("heading protection level", hdg, "°",
+                                   cfg.heading_alert_limit_deg, within))
         reasons += [a.message for k, a in self.active.items() if k not in CRITICAL]
         return Integrity(mode, bool(trusted), reasons, hpl, hdg, cfg.alert_limit_m,
                          cfg.heading_alert_limit_deg)

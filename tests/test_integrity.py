@@ -127,6 +127,26 @@ def test_protection_level_and_trust() -> None:
     assert not m.assess(1.0, "fused", cov, 1e-8).trusted
 
 
+def test_a_protection_level_hovering_at_its_limit_does_not_flip_the_trust() -> None:
+    """A heading protection level converging through 1.00° flipped the trust (the overlay's
+    colours, an alarm) every second. Once beyond its limit, a level is back within it at
+    95 % of it, and the reason says so; from a trusted state the limit itself holds."""
+    m = IntegrityMonitor(IntegrityConfig())
+    m.imu(1.0, np.zeros(3), G)
+    cov = np.diag([0.01**2, 0.01**2, 0.05**2])
+
+    def at(pl_deg: float):
+        sigma = (pl_deg - m.cfg.undetected_heading_deg) / m.cfg.k(1)
+        return m.assess(1.0, "fused", cov, math.radians(sigma) ** 2)
+
+    assert at(0.99).trusted
+    over = at(1.02)
+    assert not over.trusted and "1.02° above the 1° alert limit" in over.reasons[0]
+    held = at(0.98)
+    assert not held.trusted and "not yet back under 0.95°" in held.reasons[0], held.reasons
+    assert at(0.94).trusted and at(0.99).trusted
+
+
 def test_frame_check() -> None:
     check = FrameCheck()
     rng = np.random.default_rng(1)
