@@ -251,6 +251,9 @@ class Alarm(BaseModel):
         description="the worst it reached (an alarm that eased to a warning: alarm)")
     peak_message: str = Field(description="what it said at its worst, the last time")
     peak_s: float = Field(description="when, s since the recording start")
+    first_message: str = Field(description="what it said when raised: its cause")
+    repeats: int = Field(description="times it came back within 5 s of clearing (the same "
+                                     "alarm again, not a new one sounding)")
 
 
 class AlarmList(BaseModel):

@@ -474,7 +474,7 @@ class CarrierPhaseCoupling:
         self.gyro.restart()
         self.monitor.raise_fault(
             "gyro", ekf.time, f"gyro turned {math.degrees(angle):.1f}° off the carrier-phase "
-            f"heading in {span:.0f} s: its bias re-learned from the carrier phase and the VO")
+            f"heading in {span:.0f} s: its bias re-learned from the carrier phase")
 
     def _agrees(self, kind: str, off: np.ndarray, S: np.ndarray, t: float,
                 cleared: str) -> bool:

@@ -52,9 +52,10 @@ USABLE_MODES = ("fused", "coasting")
 # Faults that make the output untrusted while they are active (the others are warnings: the
 # fusion works around them, e.g. a receiver silent while three others track; an inconsistent
 # VO is excluded and the attitude σ widened by what it may have pulled, so the protection
-# levels say what is left).
-CRITICAL = frozenset({"imu-silent", "imu-implausible", "imu-frozen", "time-backwards",
-                      "sd-inconsistent"})
+# levels say what is left). An implausible IMU sample is dropped and bridged like a gap; a
+# run of them long enough to matter is "imu-silent" (a user trial: each spike of a burst
+# flipped the trust for a frame while the position stayed 4 cm off).
+CRITICAL = frozenset({"imu-silent", "imu-frozen", "time-backwards", "sd-inconsistent"})
 
 
 @dataclass
@@ -104,7 +105,7 @@ class IntegrityConfig:
     # before: an encoder refreshing a frozen picture (each keyframe, every 12 frames of a
     # re-encoded copy) changes it by up to ~1.6 for a frame or two, and the freeze must not
     # clear, the VO take a 5 s old picture and the page draw on it, at each refresh.
-    frozen_clear_frames: int = 10
+    frozen_clear_frames: int = 5
     # A protection level that went beyond its alert limit is back within it at this fraction
     # of it: hovering at the limit (a heading PL converging through 1.00°) flipped the trust,
     # the overlay's colours and an alarm every second (a user trial).
@@ -150,7 +151,7 @@ def _beyond(what: str, level: float, unit: str, limit: float, within: float) -> 
     sep = " " if unit == "m" else ""
     if level > limit:
         return f"{what} {level:.2f}{sep}{unit} above the {limit:g}{sep}{unit} alert limit"
-    return (f"{what} {level:.2f}{sep}{unit} not yet back under {within * limit:.2f}{sep}{unit} "
+    return (f"{what} {level:.3f}{sep}{unit} not yet back under {within * limit:.3f}{sep}{unit} "
             f"({100 * within:.0f} % of the {limit:g}{sep}{unit} alert limit)")
 
 

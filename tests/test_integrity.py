@@ -143,7 +143,7 @@ def test_a_protection_level_hovering_at_its_limit_does_not_flip_the_trust() -> N
     over = at(1.02)
     assert not over.trusted and "1.02° above the 1° alert limit" in over.reasons[0]
     held = at(0.98)
-    assert not held.trusted and "not yet back under 0.95°" in held.reasons[0], held.reasons
+    assert not held.trusted and "0.980° not yet back under 0.950°" in held.reasons[0], held.reasons
     assert at(0.94).trusted and at(0.99).trusted
 
 
@@ -329,6 +329,11 @@ def test_fault_is_declared_and_never_misleads(fault: str, sim_recording: Path,
         # rotation turns on the held mean rate (the VO was blamed for it, and excluded for
         # 10 s after the IMU came back)
         assert not raised & {"vo-inconsistent", "gyro"}, ig.alerts
+    if fault.startswith("imu-spikes"):
+        # each spike is dropped and bridged like a gap: said (a warning), the trust kept (a
+        # user trial: a burst flipped it every half second, the position 4 cm off)
+        during = integrity_scores(rec, run, start + 6.0, start + 7.0)
+        assert during.available_fraction > 0.9, during
     if fault.startswith("cycle-slips"):
         # the slips are the carrier phase's fault, not the INS's: the two rows a burst left
         # (slipped unseen) once had the INS widened by 1.15 m/s, unavailable to the end

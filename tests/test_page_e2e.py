@@ -415,6 +415,11 @@ def test_a_sensor_fault_is_declared_on_the_page_within_a_second(browser, server:
         assert berth["line_ne"] is not None and berth["bow_distance_m"] is None, berth
         fusion = _get_json(f"{server}/api/sessions/{sid}")["fusion"]
         assert fusion["phase"] == "degraded" and not fusion["integrity"]["trusted"], fusion
+        # the API's alarm list keeps what the alarm was raised for and how often it came back
+        listed = _get_json(f"{server}/api/sessions/{sid}/alarms")["alarms"]
+        integrity = next(a for a in listed if a["kind"] == "integrity")
+        assert integrity["first_message"].startswith("Integrity lost: ") \
+            and isinstance(integrity["repeats"], int), integrity
         shot(pg, "07_integrity_alarm")
         # the integrity alarm and the fault behind it both sound: one acknowledgement for all
         pg.locator("#alarms li[data-kind=integrity] button").click()
