@@ -185,6 +185,7 @@ class VoCoupling:
         self.consistency: VoConsistency | None = None  # made with the EKF (its VO model)
         self.excluded_since: float | None = None  # gpst of the last disagreement while excluded
         self._disagreeing_since: float | None = None  # gpst of the exclusion (this world's)
+        self._excluded_by: set[str] = set()  # what it disagreed in while excluded
         # (segment, next_id) the VO must restart with before its next frame, None if not
         # (``VisualOdometry.restart``; the fusion does it and clears this)
         self.restart: tuple[int, int] | None = None
@@ -261,6 +262,7 @@ class VoCoupling:
                 self._drop_segment(ekf)
                 if self.monitor is not None:
                     self.monitor.raise_fault("vo-inconsistent", t, f"{off}: VO excluded")
+            self._excluded_by.add(bad.what)
             if self._disagreeing_since is None:
                 self._disagreeing_since = t
             elif t - self._disagreeing_since >= VO_RESTART_AFTER_S and carrier_fresh:
@@ -275,13 +277,20 @@ class VoCoupling:
         if not self.excluded:
             return True
         self.excluded_since = min(self.excluded_since, t)  # (time went back: from now)
-        if self.consistency.consistent_for(t) < max(VO_CHECK_WINDOWS_S) \
-                or t - self.excluded_since < max(VO_CHECK_WINDOWS_S):
+        # Excluded for its rotation alone, by a gyro since found off the carrier-phase heading
+        # (``carrier_phase.GyroCheck``): it was the gyro's fault, and the VO, which holds the
+        # heading while the gyro's bias is learned again, is taken back at once.
+        gyro_blamed = self._excluded_by == {"rotation"} and self.monitor is not None \
+            and self.monitor.is_active("gyro")
+        if not gyro_blamed and (self.consistency.consistent_for(t) < max(VO_CHECK_WINDOWS_S)
+                                or t - self.excluded_since < max(VO_CHECK_WINDOWS_S)):
             return False
         self.excluded_since = self._disagreeing_since = None
+        self._excluded_by = set()
         if self.monitor is not None:
-            self.monitor.clear("vo-inconsistent", t, "VO agrees with the gyro and the fused "
-                               "track again: mapped afresh")
+            self.monitor.clear("vo-inconsistent", t, "the gyro was off, not the VO: mapped "
+                               "afresh" if gyro_blamed else "VO agrees with the gyro and the "
+                               "fused track again: mapped afresh")
         return True
 
     def _drop_segment(self, ekf: ErrorStateEkf) -> None:

@@ -414,9 +414,12 @@ def test_a_gyro_bias_the_vo_sees_first_is_declared_as_the_gyros(sim_recording: P
     gyro = [a for a in ig.alerts if a.kind == "gyro" and a.active]
     assert gyro and 6.0 < gyro[0].t <= 8.0 + 1e-6, ig.alerts
     assert "gyro" in gyro[0].message and "carrier-phase heading" in gyro[0].message
-    # the VO's own alert says what it was compared with, not that it is wrong
+    # the VO's own alert says what it was compared with, not that it is wrong, and the VO
+    # is taken back as the gyro is found off (it holds the heading while the bias is learned)
     assert all("off the gyro" in a.message for a in ig.alerts
                if a.kind == "vo-inconsistent" and "rotation" in a.message), ig.alerts
+    back = [a for a in ig.alerts if a.kind == "vo-inconsistent" and not a.active]
+    assert back and back[0].t == pytest.approx(gyro[0].t) and "gyro was off" in back[0].message
     assert ig.misleading_heading_epochs == 0 and ig.misleading_epochs == 0, ig
 
 
