@@ -9,8 +9,9 @@ it is active) and clears by itself when its cause has gone.
 - **faults** the engine raised (``Fusion.alerts()``, severity ``warning``: a receiver silent,
   an IMU gap bridged, frames skipped …) stay listed while active.
 
-An alarm that comes back within ``REARM_S`` of clearing, no higher than it was, is the same
-alarm again (its acknowledgement kept, ``repeats`` counted), not a new one sounding: a
+An integrity or fault alarm that comes back within ``REARM_S`` of clearing, no higher than it
+was, is the same alarm again (its acknowledgement kept, ``repeats`` counted), not a new one
+sounding: a
 protection level hovering at its limit, or IMU spikes every half second, had the officer
 acknowledging a dozen alarms in a few seconds for one cause (a user trial).
 
@@ -181,8 +182,10 @@ class AlarmBook:
 
     def _raise(self, kind: str, severity: str, t: float, message: str) -> None:
         current = self._alarms.get(kind)
+        # (not the approach alarms: their own hysteresis keeps them from chattering, and a
+        # ship closing too fast again is news even seconds after the last)
         back = current is not None and not current.active and current.cleared_s is not None \
-            and 0.0 <= t - current.cleared_s <= REARM_S
+            and 0.0 <= t - current.cleared_s <= REARM_S and not kind.startswith("approach-")
         if current is not None and (current.active or back) and \
                 SEVERITY_RANK[severity] <= SEVERITY_RANK[current.severity]:
             # still the same alarm (or eased to a lower level, or back at once after

@@ -312,6 +312,14 @@ def test_approach_alarms_depend_on_the_distance_amber_then_red():
     assert [a["id"] for a in bow] == [alarms["approach-bow"]["id"], again["id"]]
     assert [a["severity"] for a in bow] == ["warning", "warning"]  # each at its last level
     assert not any(a["active"] for a in bow) and "50 cm/s" not in bow[1]["message"]
+    # closing too fast again, at once: a new alarm (approach alarms are news each time)
+    state, m = _closing(7.7, 0.25)
+    book.update(state, [], m)
+    fresh = _approach(book)["approach-bow"]
+    assert fresh["id"] not in (alarms["approach-bow"]["id"], again["id"])
+    assert not fresh["acknowledged"] and fresh["repeats"] == 0
+    state, m = _closing(7.6, 0.10)
+    book.update(state, [], m)
     # no berth line, or an untrusted pose: no approach alarm
     state, m = _closing(5.0, 0.6)
     book.update(state, [], None)
