@@ -9,11 +9,11 @@ it is active) and clears by itself when its cause has gone.
 - **faults** the engine raised (``Fusion.alerts()``, severity ``warning``: a receiver silent,
   an IMU gap bridged, frames skipped …) stay listed while active.
 
-An integrity or fault alarm that comes back within ``REARM_S`` of clearing, no higher than it
-was, is the same alarm again (its acknowledgement kept, ``repeats`` counted), not a new one
-sounding: a
-protection level hovering at its limit, or IMU spikes every half second, had the officer
-acknowledging a dozen alarms in a few seconds for one cause (a user trial).
+An integrity or fault alarm that comes back within ``REARM_S`` of clearing for the same cause,
+no higher than it was, is the same alarm again (its acknowledgement kept, ``repeats``
+counted), not a new one sounding: a protection level hovering at its limit, or IMU spikes
+every half second, had the officer acknowledging a dozen alarms in a few seconds for one
+cause (a user trial).
 
 - **berthing** (``approach-bow``, ``approach-stern``): the bow or stern closing the berth line
   faster than the approach-speed limit for its distance (``ApproachLimit`` table, tighter as
@@ -25,6 +25,7 @@ acknowledging a dozen alarms in a few seconds for one cause (a user trial).
 
 from __future__ import annotations
 
+import re
 import threading
 from collections import deque
 from dataclasses import dataclass
@@ -184,8 +185,12 @@ class AlarmBook:
         current = self._alarms.get(kind)
         # (not the approach alarms: their own hysteresis keeps them from chattering, and a
         # ship closing too fast again is news even seconds after the last)
+        # ... and only for the same cause, the figures aside (a protection level hovering, a
+        # spike again): another cause within seconds is news (a PL at start-up and an IMU gap
+        # 4 s later were one alarm "since 1.5 s")
         back = current is not None and not current.active and current.cleared_s is not None \
-            and 0.0 <= t - current.cleared_s <= REARM_S and not kind.startswith("approach-")
+            and 0.0 <= t - current.cleared_s <= REARM_S and not kind.startswith("approach-") \
+            and _cause(current.message) == _cause(message)
         if current is not None and (current.active or back) and \
                 SEVERITY_RANK[severity] <= SEVERITY_RANK[current.severity]:
             # still the same alarm (or eased to a lower level, or back at once after
@@ -235,6 +240,11 @@ class AlarmBook:
                     a.acknowledged = True
                     return a.as_dict()
         return None
+
+
+def _cause(message: str) -> str:
+    """A message with its figures left out: what it is about."""
+    return re.sub(r"\d+(\.\d+)?", "#", message)
 
 
 def _distance_text(d: float) -> str:

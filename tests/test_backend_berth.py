@@ -344,7 +344,8 @@ def test_an_alarm_back_within_seconds_is_the_same_alarm_again():
 
     book = AlarmBook(0.0)
     book.update(state(1.0, True), [])
-    book.update(state(2.0, False, "no IMU sample for over 0.3 s"), [])
+    book.update(state(2.0, False, "heading protection level 1.04° above the 1° alert limit"),
+                [])
     first = book.active()[0]
     book.acknowledge(first["id"])
     for k in range(6):  # hovering: trusted, then not, every half second
@@ -356,11 +357,19 @@ def test_an_alarm_back_within_seconds_is_the_same_alarm_again():
     assert len(listed) == 1 and listed[0]["id"] == first["id"], listed
     assert listed[0]["active"] and listed[0]["acknowledged"] and listed[0]["repeats"] == 6
     assert "heading protection level" in listed[0]["message"]
-    assert listed[0]["first_message"] == "Integrity lost: no IMU sample for over 0.3 s"
+    assert listed[0]["first_message"] == ("Integrity lost: heading protection level 1.04° "
+                                          "above the 1° alert limit")
+    # another cause within seconds: a new alarm, sounding (an IMU gap 4 s after a PL)
+    book.update(state(8.5, True), [])
+    book.update(state(8.7, False, "no IMU sample for over 0.3 s"), [])
+    other = book.active()[0]
+    assert other["id"] != first["id"] and not other["acknowledged"] and other["since_s"] == 8.7
+    book.acknowledge(other["id"])
     # trusted for longer than REARM_S, then lost: a new alarm, sounding
     book.update(state(9.0, True), [])
     book.update(state(9.0 + REARM_S + 0.5, False, "no IMU sample for over 0.3 s"), [])
-    assert [a["id"] != first["id"] and not a["acknowledged"] for a in book.active()] == [True]
+    assert [a["id"] not in (first["id"], other["id"]) and not a["acknowledged"]
+            for a in book.active()] == [True]
     # a critical engine fault raised and cleared by every spike: one alarm, counted
     alerts = []
     for k in range(6):
