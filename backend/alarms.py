@@ -183,11 +183,10 @@ class AlarmBook:
 
     def _raise(self, kind: str, severity: str, t: float, message: str) -> None:
         current = self._alarms.get(kind)
-        # (not the approach alarms: their own hysteresis keeps them from chattering, and a
-        # ship closing too fast again is news even seconds after the last)
-        # ... and only for the same cause, the figures aside (a protection level hovering, a
-        # spike again): another cause within seconds is news (a PL at start-up and an IMU gap
-        # 4 s later were one alarm "since 1.5 s")
+        # Back within REARM_S for the same cause, the figures aside (a protection level
+        # hovering, a spike again): the same alarm. Another cause is news (a PL at start-up
+        # and an IMU gap 4 s later were one alarm "since 1.5 s"), and so is a ship closing too
+        # fast again (the approach alarms have their own hysteresis against chatter).
         back = current is not None and not current.active and current.cleared_s is not None \
             and 0.0 <= t - current.cleared_s <= REARM_S and not kind.startswith("approach-") \
             and _cause(current.message) == _cause(message)

@@ -202,7 +202,7 @@ class Session:
             if structure is not None:
                 self._structure = structure
             self._frames.append((result.index, result.t, result.image))
-            self._take(result.t, state, pose, alerts)
+            self._take(result.t, state, pose, *alerts)
             if pose is not None:
                 self.targets.on_frame(pose, result.index, result.image, self._structure)
             watched = bool(self._subscribers)
@@ -225,7 +225,7 @@ class Session:
         alerts = _engine_alerts(engine)
         state, pose = self._fused(state, t)
         with self.lock:
-            self._take(t, state, pose, alerts)
+            self._take(t, state, pose, *alerts)
             listeners = list(self.frame_listeners)
             shown = self._current_frame
             watched = bool(self._subscribers)
@@ -247,13 +247,13 @@ class Session:
         state = copy.deepcopy(state) if state is not None else None
         return state, state if is_current(state, t) else None
 
-    def _take(self, t: float, state: Any | None, pose: Any | None,
-              alerts: tuple[list[Any], list[Any]]) -> None:
-        """The alarms and the trajectory from a state at gpst ``t`` (lock held); ``alerts``:
-        the engine's alert history and its active alerts (``_engine_alerts``)."""
+    def _take(self, t: float, state: Any | None, pose: Any | None, alerts: list[Any],
+              active: list[Any]) -> None:
+        """The alarms and the trajectory from a state at gpst ``t`` (lock held); ``alerts``,
+        ``active``: the engine's alert history and its active alerts (``_engine_alerts``)."""
         if state is not None:
             self._last_state = state
-            self.alarms.update(state, alerts[0], self.berth.metrics(pose), alerts[1])
+            self.alarms.update(state, alerts, self.berth.metrics(pose), active)
         if pose is not None:
             self.history.append(t, pose)
 

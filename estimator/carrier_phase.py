@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Collection, Iterable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -62,6 +63,7 @@ ATTITUDE_DELAY_SIGMA_M = 0.005  # rows whose delay is less sure than this do not
 # step of half a degree per second shows in a second or two, where one epoch's attitude check
 # (its σ a few tenths of a degree) sees nothing.
 GYRO_CHECK_WINDOWS_S = (3.0, 6.0)
+GYRO_CHECK_LONGEST_S = max(GYRO_CHECK_WINDOWS_S) - 1e-6  # (a float's margin)
 
 
 class SdIntegers:
@@ -152,6 +154,17 @@ class SdIntegers:
                     self.drop([k for k in list(self.A) if k[1] == sat] if whole else [key])
 
 
+@dataclass(frozen=True)
+class _HeadingEpoch:
+    """One epoch of ``GyroCheck``."""
+
+    t: float
+    C_sd: np.ndarray  # body to level, by the single differences alone
+    heading_var_sd: float  # its heading's variance (rad²)
+    C_gyro: np.ndarray  # ``Ins.C_gyro`` then
+    bias_var: float  # the EKF's gyro bias variance then ((rad/s)², largest axis)
+
+
 class GyroCheck:
     """The gyro's turn over a few seconds (``Ins.C_gyro``: integrated from the calibrated
     gyro, never corrected by the EKF) against that of the heading the single differences give
@@ -167,35 +180,38 @@ class GyroCheck:
     def __init__(self, cfg: EkfConfig) -> None:
         self.cfg = cfg
         self.gate = chi2_gate(1, cfg.gate_probability)
-        # (t, attitude by the single differences, its covariance (level axes), C_gyro, the
-        # EKF's gyro bias variance then, whether the gyro measured the rotation up to then)
-        self._seen: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray, float, bool]] = \
-            deque()
+        self._seen: deque[_HeadingEpoch] = deque()
+        # the last epoch up to which the gyro did not measure the rotation (an IMU gap
+        # bridged on the held mean rate): no window holding it is judged
+        self._unmeasured_at = -math.inf
 
-    def check(self, t: float, C_sd: np.ndarray, P_sd: np.ndarray, C_gyro: np.ndarray,
-              bias_var: float, measured: bool = True) -> tuple[float, float] | None:
-        """Add an epoch's attitudes (body to level); the worst disagreeing window ending at
-        it as (angle rad, window s), None if none. ``bias_var``: the EKF's gyro bias variance
-        ((rad/s)², largest axis): what the calibrated gyro may still be off — at a window's
-        start, for it (a widening since, by the VO's check, must not hide the step).
-        ``measured`` False: an IMU gap was bridged on the held mean rate up to this epoch;
-        the windows holding it judge nothing."""
-        seen = self._seen
-        if seen and t <= seen[-1][0]:
+    def check(self, epoch: _HeadingEpoch, measured: bool = True
+              ) -> tuple[float, float] | None:
+        """Add an epoch; the worst disagreeing window ending at it as (angle rad, window s),
+        None if none. A window's gyro may be off by its start's bias σ (a widening since, by
+        the VO's check, must not hide the step). ``measured`` False: an IMU gap was bridged
+        up to this epoch."""
+        seen, t = self._seen, epoch.t
+        if seen and t <= seen[-1].t:
             seen.clear()  # time went back (a seek): nothing to compare with
-        seen.append((t, C_sd, P_sd, C_gyro, bias_var, measured))
-        while len(seen) > 1 and t - seen[1][0] >= max(GYRO_CHECK_WINDOWS_S) - 1e-6:
+            self._unmeasured_at = -math.inf
+        seen.append(epoch)
+        if not measured:
+            self._unmeasured_at = t
+        while len(seen) > 1 and t - seen[1].t >= GYRO_CHECK_LONGEST_S:
             seen.popleft()
         worst, worst_nis = None, self.gate
         for window in GYRO_CHECK_WINDOWS_S:
-            old = next((e for e in reversed(seen) if t - e[0] >= window - 1e-6), None)
-            if old is None or not all(e[5] for e in seen if e[0] >= old[0]):
+            old = next((e for e in reversed(seen) if t - e.t >= window - 1e-6), None)
+            if old is None or old.t <= self._unmeasured_at:
                 continue
-            span = t - old[0]
+            span = t - old.t
             # rotation from then to now, by the single differences and by the gyro, in level
             # axes at the start (where the attitudes' errors are stated): its down component
-            off = float((old[1] @ dcm_to_rotvec((old[1].T @ C_sd) @ (old[3].T @ C_gyro).T))[2])
-            S = old[2][2, 2] + P_sd[2, 2] + self.cfg.gyro_arw**2 * span + old[4] * span**2
+            off = float((old.C_sd @ dcm_to_rotvec((old.C_sd.T @ epoch.C_sd)
+                                                  @ (old.C_gyro.T @ epoch.C_gyro).T))[2])
+            S = old.heading_var_sd + epoch.heading_var_sd + self.cfg.gyro_arw**2 * span \
+                + old.bias_var * span**2
             if off**2 / S > worst_nis:
                 worst, worst_nis = (abs(off), span), off**2 / S
         return worst
@@ -206,7 +222,7 @@ class GyroCheck:
 
     def spans(self, t: float) -> float:
         """How long (s) the epochs kept span up to ``t``."""
-        return t - self._seen[0][0] if self._seen else 0.0
+        return t - self._seen[0].t if self._seen else 0.0
 
 
 class CarrierPhaseCoupling:
@@ -229,7 +245,7 @@ class CarrierPhaseCoupling:
         # the trajectory error the satellites' correlated rate errors have integrated to
         # since the INS started (the EKF takes them as white)
         self.drift = CorrelatedDrift()
-        self.activity = AtmosphereActivity()  # scales the drift and its overbound
+        self.activity = AtmosphereActivity()  # scales the drift and its overbound (the HPL's)
         self.gyro = GyroCheck(config)
 
     def update(self, t: float, epochs: list[GnssEpoch | None], ekf: ErrorStateEkf,
@@ -314,7 +330,6 @@ class CarrierPhaseCoupling:
         fit = self._fit(taken, innovation, ekf)
         if fit is not None and fit.satellites >= MIN_FIT_SATELLITES and taken:
             self.activity.add(fit.scatter, taken[0].interval)  # (robust: its scatter measured)
-            self.monitor.drift_scale = self.activity.scale
         if fit is not None and not (suspect and fit.satellites < MIN_FIT_SATELLITES):
             self._check_velocity(fit, ekf)
         self._check_attitude(sd_rows, ekf)
@@ -460,11 +475,12 @@ class CarrierPhaseCoupling:
         widened to the rate it is off by, so that the VO and the single differences teach
         the EKF the new bias within seconds; cleared once the longest window agrees."""
         bias_var = float(np.linalg.eigvalsh(ekf.covariance(ekf.ix.BG))[-1])
-        found = self.gyro.check(ekf.time, C_sd, P_sd, ekf.ins.C_gyro.copy(), bias_var,
-                                not any(map(self.monitor.is_active, ("imu-gap", "imu-silent"))))
+        found = self.gyro.check(_HeadingEpoch(ekf.time, C_sd, float(P_sd[2, 2]),
+                                              ekf.ins.C_gyro.copy(), bias_var),
+                                measured=not self.monitor.imu_bridged())
         if found is None:
             if self.monitor.is_active("gyro") \
-                    and self.gyro.spans(ekf.time) >= max(GYRO_CHECK_WINDOWS_S) - 1e-6:
+                    and self.gyro.spans(ekf.time) >= GYRO_CHECK_LONGEST_S:
                 self.monitor.clear("gyro", ekf.time,
                                    "gyro agrees with the carrier-phase heading again")
             return

@@ -71,8 +71,8 @@ class IntegrityConfig:
     # more than its σ grows. Overbound of that drift, added to the HPL: b·√(t − start). From
     # the real static pair (benchmarks/calibration.py, one receiver alone, the worst window):
     # 20 mm in 10 s, 32 in 30, 46 in 60, 58 in 120 → b = 6 mm/√s bounds every window. Its
-    # variance grows with the square of the measured activity (``drift_scale``): on a seed
-    # whose atmosphere was 2.5x as active the trajectory drifted 0.16 m in 70 s against an
+    # variance grows with the square of the measured activity (``assess``'s ``drift_scale``):
+    # on a seed whose atmosphere was 2.5x as active the trajectory drifted 0.16 m in 70 s against an
     # HPL of 0.18 m.
     # (The reported position σ holds that drift's 1-σ, ``cpp.CorrelatedDrift``; k times it
     # would be ~3x the worst window seen, so the HPL keeps this overbound instead.)
@@ -174,9 +174,7 @@ class IntegrityMonitor:
         self.last_input = -math.inf  # gpst of the newest input of any kind
         self.anchored_at: float | None = None  # gpst of the first filter state (world anchor)
         # The carrier-phase drift's overbound (``IntegrityConfig.drift_m_per_sqrt_s``), its
-        # variance accumulated since the anchor with the atmosphere's activity (its errors'
-        # σ against the quiet day's, ``cpp.AtmosphereActivity``: set by the carrier phase)
-        self.drift_scale = 1.0
+        # variance accumulated since the anchor with the atmosphere's activity (``assess``)
         self._drift_var = 0.0
         self._drift_t: float | None = None
         self._pl_over = False  # a protection level went beyond its limit (``pl_rearm_fraction``)
@@ -214,6 +212,11 @@ class IntegrityMonitor:
 
     def is_active(self, kind: str) -> bool:
         return kind in self.active
+
+    def imu_bridged(self) -> bool:
+        """Whether the IMU is silent or a gap is being bridged on its held mean rate: the
+        gyro's rotation then measures nothing (``Ins.C_gyro`` turns on the held rate)."""
+        return "imu-gap" in self.active or "imu-silent" in self.active
 
     def _input(self, t: float) -> None:
         self.last_input = max(self.last_input, t)
@@ -367,13 +370,12 @@ class IntegrityMonitor:
 
     # -------------------------------------------------------------------------- state
 
-    def _drift_bound(self, t: float) -> float:
+    def _drift_bound(self, t: float, scale: float) -> float:
         """The drift overbound at ``t``: b·√(t − anchor) on a quiet day, its variance
-        growing with the activity's square while it lasts."""
+        growing with the square of the activity ``scale`` while it lasts."""
         assert self._drift_t is not None
         if t > self._drift_t:
-            self._drift_var += (self.cfg.drift_m_per_sqrt_s * self.drift_scale) ** 2 \
-                * (t - self._drift_t)
+            self._drift_var += (self.cfg.drift_m_per_sqrt_s * scale) ** 2 * (t - self._drift_t)
             self._drift_t = t
         return math.sqrt(self._drift_var)
 
@@ -407,8 +409,10 @@ class IntegrityMonitor:
                              f"{self.cfg.video_silent_s:g} s: no VO")
 
     def assess(self, t: float, mode: str, position_cov: np.ndarray | None,
-               heading_var: float | None) -> Integrity:
-        """The integrity of a state at ``t``: its mode, protection levels and trust."""
+               heading_var: float | None, drift_scale: float = 1.0) -> Integrity:
+        """The integrity of a state at ``t``: its mode, protection levels and trust.
+        ``drift_scale``: the atmosphere's activity against the quiet day the drift's overbound
+        was fitted on (``cpp.AtmosphereActivity``)."""
         cfg = self.cfg
         self.check_streams(max(t, self.last_input))
         if self.is_active("imu-silent"):
@@ -419,7 +423,7 @@ class IntegrityMonitor:
                 self.anchored_at = self._drift_t = t
             horizontal = np.asarray(position_cov, float)[:2, :2] + self.origin_drift_cov()[:2, :2]
             major = float(np.linalg.eigvalsh(horizontal)[-1])
-            drift = self._drift_bound(t)
+            drift = self._drift_bound(t, drift_scale)
             hpl = cfg.k(2) * math.sqrt(max(major, 0.0)) + cfg.undetected_horizontal_m + drift
             hdg = cfg.k(1) * math.degrees(math.sqrt(max(heading_var, 0.0))) \
                 + cfg.undetected_heading_deg

@@ -306,7 +306,8 @@ class Fusion:
         integrity = self.monitor.assess(
             self.monitor.last_input, _MODE[phase],
             None if ekf is None else ekf.P[ekf.ix.R, ekf.ix.R],
-            None if ekf is None else float(ekf.P[ekf.ix.E, ekf.ix.E][2, 2]))
+            None if ekf is None else float(ekf.P[ekf.ix.E, ekf.ix.E][2, 2]),
+            1.0 if carrier is None else carrier.activity.scale)
         gnss = carrier is not None and not self.monitor.is_active("gnss-silent")
         return FusionStatus(phase=phase, compass_fixed=fixed,
                             satellites=carrier.n_sats if gnss else 0,

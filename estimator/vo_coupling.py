@@ -54,10 +54,6 @@ MAX_PULL_DEG = 3.0
 # agrees again sooner): it is restarted, if the fused track it disagrees with rests on the
 # carrier phase (coasting on the INS, the fused track is the doubtful one).
 VO_RESTART_AFTER_S = 15.0
-# Faults under which the gyro's rotation judges no VO (``_Seen.gyro_measured``): an IMU gap
-# bridged on the held mean rate (its frames are applied as it is bridged), a silent IMU, a
-# gyro found off the carrier-phase heading.
-GYRO_UNMEASURED = ("imu-gap", "imu-silent", "gyro")
 
 
 @dataclass(frozen=True)
@@ -83,10 +79,6 @@ class _Seen:
     # the fused velocity's covariance (3,3) in L, (m/s)², while the fused track is not on the
     # carrier phase (coasting); None while it is (its displacement then good to millimetres)
     coasting_velocity_cov: np.ndarray | None
-    # the gyro measured the rotation up to here: False across an IMU gap (``C_gyro`` then
-    # turns on the held mean rate) or while the gyro itself is declared off
-    # (``carrier_phase.GyroCheck``): a window holding such a frame judges no rotation
-    gyro_measured: bool = True
 
 
 
@@ -115,13 +107,21 @@ class VoConsistency:
         self.gates = {"rotation": chi2_gate(3, cfg.gate_probability),
                       "direction of travel": chi2_gate(2, cfg.gate_probability)}
         self._seen: deque[_Seen] = deque()
+        # the last frame up to which the gyro's rotation was no measurement: no window holding
+        # it judges the VO's rotation
+        self._unmeasured_at = -math.inf
 
-    def check(self, now: _Seen) -> VoDisagreement | None:
-        """Add a tracked frame; the worst disagreeing window ending at it, None if none."""
+    def check(self, now: _Seen, gyro_measured: bool = True) -> VoDisagreement | None:
+        """Add a tracked frame; the worst disagreeing window ending at it, None if none.
+        ``gyro_measured`` False: ``C_gyro`` up to this frame turned on an IMU gap's held mean
+        rate, or the gyro is declared off (``carrier_phase.GyroCheck``)."""
         seen = self._seen
         if seen and (seen[-1].segment != now.segment or now.t < seen[-1].t):
             seen.clear()  # another VO world (or time went back): nothing to compare with
+            self._unmeasured_at = -math.inf
         seen.append(now)
+        if not gyro_measured:
+            self._unmeasured_at = now.t
         longest = max(VO_CHECK_WINDOWS_S)
         while len(seen) > 1 and now.t - seen[1].t >= longest:
             seen.popleft()
@@ -130,8 +130,7 @@ class VoConsistency:
             old = next((e for e in reversed(seen) if now.t - e.t >= window - 1e-6), None)
             if old is None:
                 continue
-            measured = all(e.gyro_measured for e in seen if e.t >= old.t)
-            rotation = self._rotation(old, now) if measured else None
+            rotation = self._rotation(old, now) if old.t > self._unmeasured_at else None
             for found in (rotation, self._direction(old, now)):
                 if found is not None and found.nis > self.gates[found.what] and \
                         (worst is None or found.nis > worst.nis):
@@ -245,8 +244,9 @@ class VoCoupling:
             np.asarray(out.camera_position_world, float), ekf.ins.C_gyro.copy(),
             ekf.camera_attitude(), ekf.camera_position(),
             math.sqrt(max(float(np.linalg.eigvalsh(ekf.P[ekf.ix.E, ekf.ix.E])[-1]), 0.0)),
-            None if carrier_fresh else ekf.P[ekf.ix.V, ekf.ix.V].copy(),
-            self.monitor is None or not any(map(self.monitor.is_active, GYRO_UNMEASURED))))
+            None if carrier_fresh else ekf.P[ekf.ix.V, ekf.ix.V].copy()),
+            gyro_measured=self.monitor is None or not (self.monitor.imu_bridged()
+                                                       or self.monitor.is_active("gyro")))
         if bad is not None:
             judge = "the gyro" if bad.what == "rotation" else "the fused track"
             off = (f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}° off {judge} over "
@@ -288,9 +288,10 @@ class VoCoupling:
         self.excluded_since = self._disagreeing_since = None
         self._excluded_by = set()
         if self.monitor is not None:
-            self.monitor.clear("vo-inconsistent", t, "the gyro was off, not the VO: mapped "
-                               "afresh" if gyro_blamed else "VO agrees with the gyro and the "
-                               "fused track again: mapped afresh")
+            self.monitor.clear("vo-inconsistent", t,
+                               "the gyro was off, not the VO: mapped afresh" if gyro_blamed
+                               else "VO agrees with the gyro and the fused track again: mapped "
+                               "afresh")
         return True
 
     def _drop_segment(self, ekf: ErrorStateEkf) -> None:

@@ -606,6 +606,7 @@ def test_a_vo_travelling_off_its_direction_is_excluded(sim_recording: Path, clea
         return float(np.nanmax(np.abs(e[r.time >= start + 6.0])))  # type: ignore[attr-defined]
 
     assert heading_error_deg(run) < heading_error_deg(clean) + 0.1
-    monkeypatch.setattr("estimator.vo_coupling.VoConsistency.check", lambda _self, _now: None)
+    monkeypatch.setattr("estimator.vo_coupling.VoConsistency.check",
+                        lambda _self, _now, **_kw: None)
     unchecked = fuse(rec, vo, options, "unchecked", end)
     assert heading_error_deg(unchecked) > heading_error_deg(clean) + 0.5
