@@ -616,6 +616,8 @@ def engine_setup(rec: Recording, engine_factory: EngineFactory, options: dict[st
     engine_options = dict(options)
     if integrity is not None:
         engine_options["integrity"] = integrity
+    # A step of the gyro's rate of turn beyond what the hull turns is the gyro's.
+    engine_options.setdefault("hull_length_m", float(rec.hull.length))
     if water.known:
         # The landmark refinement drops points on or below the water (reflections).
         engine_options.setdefault("body_origin_height_m", water.down_m)

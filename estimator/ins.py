@@ -172,6 +172,16 @@ class Ins:
     def state(self) -> InsState:
         return self._state.copy()
 
+    def level_yaw_rate(self, gyro: np.ndarray) -> float:
+        """A raw gyro sample's rate about the level down axis (rad/s), its bias not removed
+        (scale factor and misalignment are)."""
+        return float(self._state.C_body_to_level[2] @ (self.gyro_correction @ gyro))
+
+    @property
+    def horizontal_speed(self) -> float:
+        """Speed over ground (m/s)."""
+        return math.hypot(*self._state.velocity_ned[:2])
+
     @property
     def omega_body(self) -> np.ndarray:
         """Last calibrated angular rate ω_ib^B (rad/s)."""

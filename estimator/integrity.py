@@ -447,6 +447,121 @@ class IntegrityMonitor:
                          cfg.heading_alert_limit_deg)
 
 
+# Nomoto's first-order steering model, T·ṙ + r = K·δ with K = K'·U/L and T = T'·L/U, puts a
+# hull's largest yaw acceleration (full rudder from a steady course) at K'/T'·δ·(U/L)².
+NOMOTO_GAIN_RATIO = 2.0  # K'/T': near 1 for ships (K', T' both ~1.5–3); an upper value
+MAX_RUDDER_RAD = math.radians(35.0)
+# Below this Froude number U/√(gL) the bound stays at its value there: at berthing speeds
+# thrusters, tugs and waves turn a hull more than its rudder does.
+MIN_FROUDE = 0.4
+GRAVITY_MPS2 = 9.81
+
+
+def max_yaw_acceleration(length_m: float, speed_mps: float) -> float:
+    """The largest yaw acceleration (rad/s²) of a hull ``length_m`` long at ``speed_mps``:
+    K'/T'·δ_max·g·Fn²/L (Nomoto, above), Fn at least ``MIN_FROUDE``. A 200 m ship: 0.55°/s²;
+    a 7 m boat: 16°/s² (the simulated ones reach 0.01 and 7)."""
+    froude2 = max(speed_mps**2 / (GRAVITY_MPS2 * length_m), MIN_FROUDE**2)
+    return NOMOTO_GAIN_RATIO * MAX_RUDDER_RAD * GRAVITY_MPS2 * froude2 / length_m
+
+
+@dataclass
+class YawStep:
+    """A step of the gyro's rate of turn (``YawStepCheck.update``), rad/s."""
+
+    step: float  # measured so far: the recent mean still holds samples before the step
+    bound: float  # what the hull could have turned by
+    widen: float  # σ to add to the gyro bias now (the bias' σ then covers |step|)
+    settled: bool  # the recent mean lies after the step: ``step`` is the whole of it
+
+
+class YawStepCheck:
+    """The gyro's rate of turn against what the hull can do: its mean over the last 0.1 s
+    against that over the 0.5 s before, apart by more than the hull's largest yaw
+    acceleration (``max_yaw_acceleration``) makes of the 0.3 s between them plus five σ of the
+    two means' noise, is a step of the gyro (its bias), not a turn of the ship.
+
+    On a 200 m hull that is ~0.2°/s, found within a tenth of a second. The carrier-phase
+    heading (``carrier_phase.GyroCheck``) needs seconds and the VO's rotation a second, and
+    meanwhile the rate of turn and the bow's and stern's approach speeds on the hull's lever
+    are wrong under a tight σ (a user trial: after a 0.5°/s step the bow showed opening at
+    1.1 m/s while it closed at 0.26, trusted for 0.9 s). On a small boat the bound is ~5°/s:
+    only gross steps are found there. The rate is the raw gyro's (its bias in it, constant):
+    the EKF's bias corrections would be steps of their own.
+
+    Found, the step is measured on for 0.1 s against the mean before it (the first sample
+    beyond the bound holds only part of it), then the check starts afresh on the new level."""
+
+    RECENT_S = 0.1
+    BEFORE_S = 0.5
+    NOISE_S = 2.0  # time constant of the samples' noise estimate (and the settling it needs)
+    K_NOISE = 5.0
+
+    def __init__(self, length_m: float) -> None:
+        self.length_m = float(length_m)
+        self.reset()
+
+    def reset(self) -> None:
+        """Start afresh (after a gap, or a step measured: the new level is the ship's)."""
+        self._recent: deque[float] = deque()
+        self._before: deque[float] = deque()
+        self._since: float | None = None
+        self._last: float | None = None
+        self._abs_diff = 0.0  # running mean of |successive difference| (the noise)
+        self._found: YawStep | None = None
+        self._found_before = 0.0  # the mean before the step found
+        self._found_left = 0  # samples until the recent mean lies after it
+
+    def update(self, t: float, rate: float, interval: float, speed_mps: float
+               ) -> YawStep | None:
+        """One sample's rate of turn (rad/s, about the level down axis) at ``t``, the IMU's
+        regular ``interval`` (s) and the speed over ground: the step while one is found and
+        measured, else None."""
+        if self._last is not None:
+            w = min(interval / self.NOISE_S, 1.0)
+            self._abs_diff += w * (abs(rate - self._last) - self._abs_diff)
+        self._last = rate
+        if self._since is None:
+            self._since = t
+        n1 = max(3, round(self.RECENT_S / interval))
+        n0 = max(10, round(self.BEFORE_S / interval))
+        self._recent.append(rate)
+        while len(self._recent) > n1:
+            self._before.append(self._recent.popleft())
+        while len(self._before) > n0:
+            self._before.popleft()
+        if self._found is not None:
+            return self._measure()
+        if len(self._before) < n0 or t - self._since < self.NOISE_S:
+            return None
+        before = sum(self._before) / n0
+        step = sum(self._recent) / n1 - before
+        # |Δ| of two samples' white noise has the mean 2σ/√π
+        sigma = self._abs_diff * math.sqrt(math.pi) / 2.0
+        bound = (max_yaw_acceleration(self.length_m, speed_mps)
+                 * 0.5 * (n0 + n1) * interval
+                 + self.K_NOISE * sigma * math.sqrt(1.0 / n1 + 1.0 / n0))
+        if abs(step) <= bound:
+            return None
+        self._found = YawStep(step, bound, abs(step), False)
+        self._found_before, self._found_left = before, n1 - 1
+        return self._found
+
+    def _measure(self) -> YawStep:
+        found = self._found
+        assert found is not None
+        step = sum(self._recent) / len(self._recent) - self._found_before
+        # the σ added so far is found.widen (root-sum-square): add what covers |step|
+        widen = math.sqrt(max(step**2 - found.widen**2, 0.0))
+        self._found_left -= 1
+        self._found = YawStep(step, found.bound, max(found.widen, abs(step)),
+                              self._found_left <= 0)
+        out = YawStep(step, found.bound, widen, self._found.settled)
+        if out.settled:
+            self.reset()
+        return out
+
+
 class FrameCheck:
     """Is a frame fit for the VO? Black, blinded (saturated) and frozen (the very frame again)
     frames are not (``IntegrityConfig`` levels). Stateful: it remembers the last frame, and a

@@ -37,6 +37,10 @@ class FusionOptions:
     # ``body_origin_height_m`` it gives the antennas' height, which the standalone fix that
     # anchors the carrier phase's geometry is corrected with (``spp.height_aided``).
     sea_surface: tuple[float, float] | None = None
+    # Length of the hull (hull.json ``length``, m): a step of the gyro's rate of turn beyond
+    # what a hull that long can turn is the gyro's (``integrity.YawStepCheck``). None: unknown,
+    # not checked.
+    hull_length_m: float | None = None
     # Fault detection, protection levels and alert limits (``estimator.integrity``).
     integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
 

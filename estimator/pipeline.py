@@ -50,7 +50,7 @@ from .frames import (
 )
 from .gnss_epochs import N_RECEIVERS, GnssFront
 from .ins import Ins, InsState, RateSmoother, calibration_matrices
-from .integrity import Alert, FrameCheck, IntegrityMonitor, checked_vo
+from .integrity import Alert, FrameCheck, IntegrityMonitor, YawStepCheck, checked_vo
 from .landmarks import LandmarkMap, SolvedViews
 from .options import FusedState, FusionOptions, FusionStatus, WorldOrigin
 from .records import Calibration, GnssEpoch, NavigationData
@@ -116,6 +116,7 @@ class Fusion:
         self._last_raw: tuple[float, np.ndarray, np.ndarray] | None = None
         self._raw_mean: tuple[np.ndarray, np.ndarray] | None = None  # (gyro, accel) over ~3 s
         self._rate = RateSmoother(self.cfg.gyro_arw)  # the outputs' angular rate
+        self._yaw_step = YawStepCheck(opt.hull_length_m) if opt.hull_length_m else None
         self._pending: deque[_Pending] = deque()
         self._timer = _Timer()
         self.front = GnssFront(nav, opt, self.monitor)
@@ -153,6 +154,8 @@ class Fusion:
             assert self.ins is not None
             self._rate.update(self.ins.omega_body, t - self._last_raw[0]
                               if self._last_raw is not None else 0.0)
+            if self._yaw_step is not None:
+                self._check_yaw_step(t, gyro)
         self._last_raw = (t, gyro, accel)
         self._average(gyro, accel)
         self._timer.add("imu", _time.perf_counter() - t0)
@@ -376,6 +379,8 @@ class Fusion:
         assert ekf is not None and self._last_raw is not None and self._raw_mean is not None
         t_last = self._last_raw[0]
         g0, a0 = self._raw_mean
+        if self._yaw_step is not None:
+            self._yaw_step.reset()  # the rate over the gap was not measured
         step = self.monitor.imu_interval  # at the IMU's own rate: one long step would not do
         for k in range(1, int(gap / step)):
             # The error of a held rate (acceleration) grows linearly in the attitude (velocity)
@@ -385,6 +390,30 @@ class Fusion:
                         velocity_mps=GAP_ACCEL_SIGMA * math.sqrt(b**2 - a**2),
                         attitude_rad=GAP_RATE_SIGMA * math.sqrt(b**2 - a**2))
             self._advance(t_last + b, g0, a0)
+
+    def _check_yaw_step(self, t: float, gyro: np.ndarray) -> None:
+        """The gyro's rate of turn against the hull's (``YawStepCheck``): a step beyond it is
+        declared ("gyro") and the gyro's bias σ widened to it as it is measured, so that the
+        rate of turn and the approach speeds say how far off they may be while the VO and the
+        single differences teach the EKF the new bias; the carrier-phase heading's check then
+        judges the gyro afresh (and clears the fault once they agree)."""
+        ins, ekf, check = self.ins, self.ekf, self._yaw_step
+        assert ins is not None and ekf is not None and check is not None
+        # the raw gyro (bias and all): the EKF's bias corrections are no steps of the ship
+        found = check.update(t, ins.level_yaw_rate(gyro), self.monitor.imu_interval,
+                             ins.horizontal_speed)
+        if found is None:
+            return
+        if found.widen > 0.0:
+            ekf.inflate(0.0, 0.0, 0.0, gyro_bias=found.widen)
+        if found.settled:  # declared once measured (a tenth of a second), widened already
+            if self.carrier is not None:
+                self.carrier.gyro.restart()
+            self.monitor.raise_fault(
+                "gyro", t, f"gyro's rate of turn stepped {math.degrees(found.step):+.2f}°/s, "
+                f"more than a {check.length_m:.0f} m hull turns in "
+                f"{check.RECENT_S + check.BEFORE_S:.1f} s ({math.degrees(found.bound):.2f}°/s):"
+                " its bias re-learned")
 
     def _average(self, gyro: np.ndarray, accel: np.ndarray) -> None:
         """The raw samples' running mean (time constant ``GAP_MEAN_S``): what a gap coasts on."""

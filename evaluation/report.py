@@ -124,7 +124,8 @@ def evaluate(rec: Recording, opt: ReportOptions, progress: Callable[[str], None]
                          f"after the {opt.init_s:g} s initialisation")
     full = FusionOptions(keep_after_s=opt.init_s,
                          body_origin_height_m=rec.hull.body_origin_height_m,
-                         sea_surface=rec.hull.sea_surface, **opt.fusion)
+                         sea_surface=rec.hull.sea_surface, hull_length_m=rec.hull.length,
+                         **opt.fusion)
     main = rs.fuse(MAIN, full)
     if main.origin_time is None:
         raise ValueError(f"{rec.manifest.name}: the fusion never started (no GNSS compass fix "

@@ -75,3 +75,46 @@ def test_large_ship_heading_and_position_hold_against_vo_yaw_drift(large_run):
     std = float(np.sqrt(np.mean(np.sum((h - h.mean(axis=0)) ** 2, axis=1))))
     assert std < 0.05, f"horizontal std {std:.3f} m"
     assert np.max(np.linalg.norm(h, axis=1)) < 0.15
+
+
+STEP_AT_S = 30.0
+STEP_DPS = 0.5
+
+
+def _rate_of_turn_run(hull_length_m: float | None, until_s: float):
+    """The large ship's sensors (no VO) with a 0.5°/s yaw-rate bias step of the gyro at
+    ``STEP_AT_S``: the alerts and, every 0.1 s from the step on, (t, rate-of-turn error, σ)."""
+    run = simulate_sensors(SC, SEED, until_s)
+    gyro = run.imu.gyro.copy()
+    gyro[run.imu.time >= SC.start_gpst + STEP_AT_S, 2] += np.radians(STEP_DPS)
+    run.imu.gyro = gyro
+    f = Fusion(run.calibration, run.nav, FusionOptions(use_vo=False, landmarks=None,
+                                                       hull_length_m=hull_length_m))
+    rows = []
+    for k, t in run.feed(f):
+        rel = t - SC.start_gpst
+        if k % 10 or rel < STEP_AT_S - 0.05:
+            continue
+        s = f.state()
+        yaw = run.motion.state(np.array([rel - 0.05, rel + 0.05])).euler[:, 2]
+        true_rate = np.angle(np.exp(1j * (yaw[1] - yaw[0]))) / 0.1
+        rows.append((rel, s.rate_of_turn - true_rate, s.rate_of_turn_sigma))
+    return f.alerts(), np.array(rows)
+
+
+def test_a_gyro_step_no_hull_can_turn_is_declared_at_once_and_covered():
+    """A 0.5°/s step of the gyro's yaw rate on a 200 m ship: a rate of turn no such hull
+    reaches in 0.3 s (``integrity.YawStepCheck``). Declared within 0.2 s, its σ widened from
+    the first sample beyond the bound: from then on the rate of turn's σ covers its error
+    (the bow's approach speed is this rate on a 100 m lever). Without the hull's length (the
+    check off) the rate is wrong by 0.4°/s under a σ of 0.01°/s: the failure the check
+    prevents. The 30 s before the step raise nothing."""
+    alerts, rows = _rate_of_turn_run(SC.hull_length_m, STEP_AT_S + 2.0)
+    gyro = [a for a in alerts if a.kind == "gyro" and a.active]
+    assert gyro and STEP_AT_S < gyro[0].t - SC.start_gpst <= STEP_AT_S + 0.2, alerts
+    assert "stepped +0.5" in gyro[0].message and "200 m hull" in gyro[0].message
+    after = rows[rows[:, 0] >= gyro[0].t - SC.start_gpst + 0.05]
+    assert len(after) >= 15 and np.all(np.abs(after[:, 1]) <= 2.0 * after[:, 2]), after
+    _alerts, blind = _rate_of_turn_run(None, STEP_AT_S + 0.5)
+    late = blind[blind[:, 0] >= STEP_AT_S + 0.2]
+    assert np.max(np.abs(late[:, 1]) / late[:, 2]) > 10.0, late
