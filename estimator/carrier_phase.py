@@ -15,6 +15,7 @@ a few cm per minute of trajectory otherwise).
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
@@ -64,6 +65,10 @@ ATTITUDE_DELAY_SIGMA_M = 0.005  # rows whose delay is less sure than this do not
 # (its σ a few tenths of a degree) sees nothing.
 GYRO_CHECK_WINDOWS_S = (3.0, 6.0)
 GYRO_CHECK_LONGEST_S = max(GYRO_CHECK_WINDOWS_S) - 1e-6  # (a float's margin)
+# The single differences' heading scatter (``GyroCheck.scatter``): over this many epochs,
+# used from this many on
+GYRO_SCATTER_EPOCHS = 30
+GYRO_SCATTER_MIN = 10
 
 
 class SdIntegers:
@@ -165,6 +170,13 @@ class _HeadingEpoch:
     bias_var: float  # the EKF's gyro bias variance then ((rad/s)², largest axis)
 
 
+def _heading_off(old: _HeadingEpoch, new: _HeadingEpoch) -> float:
+    """The rotation from ``old`` to ``new`` by the single differences less the gyro's, in
+    level axes at the start (where the attitudes' errors are stated): its down component."""
+    return float((old.C_sd @ dcm_to_rotvec((old.C_sd.T @ new.C_sd)
+                                           @ (old.C_gyro.T @ new.C_gyro).T))[2])
+
+
 class GyroCheck:
     """The gyro's turn over a few seconds (``Ins.C_gyro``: integrated from the calibrated
     gyro, never corrected by the EKF) against that of the heading the single differences give
@@ -184,6 +196,11 @@ class GyroCheck:
         # the last epoch up to which the gyro did not measure the rotation (an IMU gap
         # bridged on the held mean rate): no window holding it is judged
         self._unmeasured_at = -math.inf
+        # Consecutive epochs' disagreements over their stated σ: their spread is what the
+        # single differences' heading scatters by. On large ship 205 it was 1.5x the fit's
+        # σ (multipath), and two epochs 2.9σ apart raised "gyro" on a clean recording. A
+        # bias step adds the same to each, which their spread about the median ignores.
+        self._normalised: deque[float] = deque(maxlen=GYRO_SCATTER_EPOCHS)
 
     def check(self, epoch: _HeadingEpoch, measured: bool = True
               ) -> tuple[float, float] | None:
@@ -200,6 +217,11 @@ class GyroCheck:
             self._unmeasured_at = t
         while len(seen) > 1 and t - seen[1].t >= GYRO_CHECK_LONGEST_S:
             seen.popleft()
+        if len(seen) > 1 and seen[-2].t > self._unmeasured_at:
+            last = seen[-2]
+            self._normalised.append(_heading_off(last, epoch) / math.sqrt(
+                last.heading_var_sd + epoch.heading_var_sd))
+        scatter2 = self.scatter() ** 2
         worst, worst_nis = None, self.gate
         for window in GYRO_CHECK_WINDOWS_S:
             old = next((e for e in reversed(seen) if t - e.t >= window - 1e-6), None)
@@ -208,13 +230,22 @@ class GyroCheck:
             span = t - old.t
             # rotation from then to now, by the single differences and by the gyro, in level
             # axes at the start (where the attitudes' errors are stated): its down component
-            off = float((old.C_sd @ dcm_to_rotvec((old.C_sd.T @ epoch.C_sd)
-                                                  @ (old.C_gyro.T @ epoch.C_gyro).T))[2])
-            S = old.heading_var_sd + epoch.heading_var_sd + self.cfg.gyro_arw**2 * span \
-                + old.bias_var * span**2
+            off = _heading_off(old, epoch)
+            S = (old.heading_var_sd + epoch.heading_var_sd) * scatter2 \
+                + self.cfg.gyro_arw**2 * span + old.bias_var * span**2
             if off**2 / S > worst_nis:
                 worst, worst_nis = (abs(off), span), off**2 / S
         return worst
+
+    def scatter(self) -> float:
+        """How many times its stated σ the single differences' heading scatters by (at
+        least 1; 1 until ``GYRO_SCATTER_MIN`` epochs are known): 1.4826 times the median
+        absolute deviation of the consecutive epochs' normalised disagreements."""
+        z = self._normalised
+        if len(z) < GYRO_SCATTER_MIN:
+            return 1.0
+        med = statistics.median(z)
+        return max(1.0, 1.4826 * statistics.median(abs(v - med) for v in z))
 
     def restart(self) -> None:
         """Forget the epochs so far (the gyro's bias was widened: judged afresh)."""
