@@ -257,6 +257,12 @@ class LiveRunner:
                     self._arrived.wait(0.1)
                     if not self._queue and time.monotonic() - waited >= QUIET_TICK_S:
                         now = self.source.aligner.clock.to_gpst(time.monotonic())
+                        held = self.source.aligner.waiting_from
+                        if now is not None and held is not None:
+                            # the merge holds messages from then on, waiting for one
+                            # stream: the others are not silent (a user trial: a stalled
+                            # receiver was declared first as "no IMU sample")
+                            now = min(now, held - 1e-3)
                         if now is not None and now > self._t:
                             return _Quiet(float(now))
                         waited = time.monotonic()

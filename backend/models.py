@@ -270,6 +270,8 @@ class LiveInput(BaseModel):
     state: str = Field(description="connecting | streaming | lagging | stopped")
     received: int
     late: int = Field(description="messages dropped: they came after the merge passed them")
+    ahead: int = Field(0, description="messages dropped: their time tag was ahead of the "
+                                      "receivers' clock by more than half a second")
     last_gpst: float | None
     error: str | None
 

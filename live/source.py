@@ -32,6 +32,7 @@ import heapq
 import logging
 import math
 import queue
+import statistics
 import threading
 import time
 from collections import deque
@@ -59,6 +60,12 @@ log = logging.getLogger(__name__)
 RECEIVER_GRID_SLACK_S = 0.1
 RECONNECT_S = 1.0  # a stopped device is reopened this often
 UNTIMED_FRAMES_KEPT_S = 5.0  # frames wait this long for the first GNSS epoch to time them
+# A time tag this far ahead of the GNSS clock (the host's clock mapped) cannot be: the sample
+# or epoch is dropped and counted. Let in, one receiver's epoch an hour ahead moved the merge
+# an hour on and every later message of every sensor was late (a user trial: no position,
+# the other sensors blamed, the recording ruined).
+FUTURE_TOLERANCE_S = 0.5
+ERROR_SHOWN_S = 10.0  # a dropped message's error stays on its input this long
 _IMU, _GNSS, _FRAME = 0, 1, 2
 
 
@@ -67,17 +74,26 @@ class GnssClock:
 
     Each epoch gives gpst − arrival = offset − delay (the receiver's output and transport
     delay, ≥ 0); the largest value over the last ``window`` epochs is the one with the least
-    delay, taken as the offset."""
+    delay, taken as the offset. Values more than ``FUTURE_TOLERANCE_S`` above the median (from
+    three epochs on) are a wrong time tag, not a short delay: left out."""
 
     def __init__(self, window: int = 60):
         self._samples: deque[float] = deque(maxlen=window)
+        self._offset: float | None = None
 
     def observe(self, t_gpst: float, arrival_mono: float) -> None:
+        if not math.isfinite(t_gpst):
+            return
         self._samples.append(t_gpst - arrival_mono)
+        if len(self._samples) < 3:
+            self._offset = max(self._samples)
+            return
+        top = statistics.median(self._samples) + FUTURE_TOLERANCE_S
+        self._offset = max(v for v in self._samples if v <= top)
 
     @property
     def offset(self) -> float | None:
-        return max(self._samples) if self._samples else None
+        return self._offset
 
     def to_gpst(self, mono: float) -> float | None:
         off = self.offset
@@ -92,12 +108,15 @@ class StreamHealth:
     state: str = "connecting"  # connecting / streaming / lagging / stopped
     received: int = 0
     late: int = 0  # dropped: arrived after the merge had passed its time
+    ahead: int = 0  # dropped: time tag ahead of the GNSS clock (``FUTURE_TOLERANCE_S``)
+    error_until: float = -math.inf  # (monotonic) a dropped message's error shown until then
     last_gpst: float | None = None
     error: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"name": self.name, "state": self.state, "received": self.received,
-                "late": self.late, "last_gpst": self.last_gpst, "error": self.error}
+                "late": self.late, "ahead": self.ahead, "last_gpst": self.last_gpst,
+                "error": self.error}
 
 
 class TimeAligner:
@@ -133,6 +152,10 @@ class TimeAligner:
         self._last_group_t: float | None = None
         self.stopped: set[str] = set()
         self._undated: dict[str, list[Any]] = {}  # SFRBX received before any epoch
+        # gpst of the earliest message held back while the merge waits for a stream (None:
+        # nothing held): the sensors are not silent up to it (read by the live session's
+        # thread)
+        self.waiting_from: float | None = None
 
     # ------------------------------------------------------------------ producers
 
@@ -196,20 +219,34 @@ class TimeAligner:
         if self._started is None:
             self._started = arrival
         if isinstance(item, ImuMessage):
-            self._accept(stream, item.t, _IMU, h, lambda: self._imu.append((item, arrival)))
+            if not self._ahead(item.t, arrival, h):
+                self._accept(stream, item.t, _IMU, h, arrival,
+                             lambda: self._imu.append((item, arrival)))
         elif isinstance(item, GnssEpoch):
+            self.clock.observe(item.time, arrival)
+            if self._ahead(item.time, arrival, h):
+                return
             for msg in self._undated.pop(stream, []):
                 if self.apply_sfrbx is not None:
                     self.apply_sfrbx(msg, item.time)
-            self.clock.observe(item.time, arrival)
-            self._accept(stream, item.time, _GNSS, h, lambda: self._add_epoch(stream, item,
-                                                                               arrival))
+            self._accept(stream, item.time, _GNSS, h, arrival,
+                         lambda: self._add_epoch(stream, item, arrival))
             self._time_frames()
         elif isinstance(item, FrameMessage):
             self._untimed.append((item, arrival))
             self._time_frames()
 
-    def _accept(self, stream: str, t: float, kind: int, h: StreamHealth,
+    def _ahead(self, t: float, arrival: float, h: StreamHealth) -> bool:
+        """Whether a time tag ``t`` is ahead of the GNSS clock at its arrival (dropped)."""
+        now = self.clock.to_gpst(arrival)
+        if now is None or not math.isfinite(t) or t <= now + FUTURE_TOLERANCE_S:
+            return False
+        h.ahead += 1
+        h.error = f"time tag {t - now:.1f} s ahead of the receivers' clock: dropped"
+        h.error_until = arrival + ERROR_SHOWN_S
+        return True
+
+    def _accept(self, stream: str, t: float, kind: int, h: StreamHealth, arrival: float,
                 add: Callable[[], None]) -> None:
         if not math.isfinite(t) or t <= self._last[stream]:
             h.late += 1  # not after the stream's previous message: dropped
@@ -218,6 +255,11 @@ class TimeAligner:
         h.last_gpst = t
         if h.state in ("connecting", "lagging", "stopped"):
             h.state = "streaming"
+        if arrival >= h.error_until:
+            h.error = None  # delivering: what went wrong before is over
+        # ... and waited for again (a reconnected device was not: its data a few ms late
+        # were dropped for the rest of the run, a user trial's 18 % of the frames)
+        self.stopped.discard(stream)
         self._lagging.discard(stream)
         if (t, kind) <= self._released:
             h.late += 1
@@ -245,7 +287,7 @@ class TimeAligner:
                 return
             self._untimed.popleft()
             timed = FrameMessage(t, frame.index, frame.image, frame.jpeg)
-            self._accept("camera", t, _FRAME, self.health["camera"],
+            self._accept("camera", t, _FRAME, self.health["camera"], arrival,
                          lambda timed=timed, arrival=arrival: self._frames.append((timed,
                                                                                    arrival)))
 
@@ -300,8 +342,10 @@ class TimeAligner:
         if self._frames:
             heads.append((self._frames[0][0].t, _FRAME, self._frames[0][1], "camera"))
         if not heads:
+            self.waiting_from = None
             return None, None
         t, kind, arrival, which = min(heads)
+        self.waiting_from = t
         blockers = []
         for stream in self.health:
             if stream == which or (which == "gnss" and stream.startswith("rx")):
@@ -329,6 +373,7 @@ class TimeAligner:
             if self.health[stream].state == "streaming":
                 self.health[stream].state = "lagging"
         self._released = (t, kind)
+        self.waiting_from = None
         if which == "imu":
             return self._imu.popleft()[0], None
         if which == "camera":
