@@ -352,6 +352,21 @@ def test_overlay_greys_out_when_untrusted(page) -> None:
     shot(page, "02_untrusted_grey")
 
 
+def test_the_rate_of_turn_shows_its_sigma_when_it_matters(page) -> None:
+    """A gyro fault widens the rate of turn's σ (``integrity.YawStepCheck``: 0.5°/s, 30°/min):
+    the ROT readout says ±30; a usual σ (a few hundredths of a °/s) is not printed."""
+    wait_trusted(page)
+    pause(page)  # no newer frame may replace the one we show
+    page.evaluate("""() => { const f = window.berthing.frame;
+      window.berthing.show({...f, pose: {...f.pose, rate_of_turn_dps: 0.15,
+                                         rate_of_turn_std_dps: 0.5}}); }""")
+    assert page.locator("#rot").inner_text().replace("\n", " ").strip() == "9°/min S ±30"
+    page.evaluate("""() => { const f = window.berthing.frame;
+      window.berthing.show({...f, pose: {...f.pose, rate_of_turn_dps: 0.15,
+                                         rate_of_turn_std_dps: 0.01}}); }""")
+    assert page.locator("#rot").inner_text().replace("\n", " ").strip() == "9°/min S"
+
+
 def test_an_excluded_vo_is_said_and_the_overlay_stays_usable(page) -> None:
     """The engine excluded the VO (its travel disagreed with the carrier-phase track,
     ``estimator.vo_coupling.VoConsistency``) while GNSS and IMU still hold the state: the VO
@@ -892,11 +907,17 @@ def test_frames_that_stop_coming_grey_the_page_within_a_second(page, server: str
         assert "No new frames" in page.locator("#untrusted").inner_text()
         assert page.locator("#st-integrity").inner_text().endswith("no data")
         assert "unreliable" in (page.locator(".side").get_attribute("class") or "")
+        # the figures are of then, not now: none shown (the picture stays, said frozen)
+        for fig in ("#hdg", "#sog", "#rot", "#bow-dist"):
+            assert page.locator(fig).inner_text().strip() == "–", fig
+        assert page.locator("#berth-method").inner_text() == "no new data"
         shot(page, "08_frames_stopped")
     finally:
         os.kill(_SERVER_PIDS[server], signal.SIGCONT)
     page.wait_for_function("() => window.berthing.stats.connection === 'live' "
                            "&& window.berthing.trust.trusted", timeout=20000)
+    page.wait_for_function("() => document.getElementById('hdg').innerText.includes('°')",
+                           timeout=5000)
 
 
 def test_stream_reconnects(page) -> None:

@@ -74,7 +74,15 @@ const stream = new Stream({
     if (s.state === "error" && s.error) toast(`Replay stopped: ${s.error}`);
   },
   onState: (state, detail) => { status.setConnection(state, detail); render(); }, // (un)grey
-  onGone: (detail) => toast(`Session closed: ${detail}. Reload the page to start again.`),
+  onGone: (detail) => {
+    if (!app.session?.live) {
+      toast(`Session closed: ${detail}. Reload the page to start again.`);
+      return;
+    }
+    // the ship's live session: a restarted server runs it anew, under another id
+    toast(`Live session closed: ${detail}. Looking for the server's live session…`);
+    findLive();
+  },
 });
 
 // For the end-to-end tests and for debugging from the console: what is on screen right now.
@@ -115,12 +123,17 @@ function render() {
     app.labels = drawOverlay(el.overlay, f, app.view, { ...opts, picks: picksIn("image") });
   }
   plan.draw(f, { ...opts, picks: picksIn("plan") });
-  const level = panel.update(f, app.trust.trusted);
-  limits.update(f?.overlay?.berth);
+  // No new data (the link lost, or no frame for a while): the picture and its overlay stay,
+  // frozen and said so, but the figures are of then, not now: none shown (a user trial read
+  // a heading 41° off and a berth distance of 55 s before, in the panel's large type).
+  const lost = ["stale", "reconnecting", "closed"].includes(status.connection);
+  const figures = lost && f ? { ...f, pose: null, overlay: f.overlay && { ...f.overlay, berth: null, targets: [] } } : f;
+  const level = panel.update(figures, app.trust.trusted, lost);
+  limits.update(figures?.overlay?.berth);
   document.querySelector(".side").classList.toggle("unreliable", !!f && !app.trust.trusted);
   el.wrap.classList.toggle("alarm", level === "alarm");
   el.wrap.classList.toggle("warning", level === "warning");
-  targets.update(f?.overlay?.targets);
+  targets.update(figures?.overlay?.targets);
   alarms.update(f?.alarms);
   if (f) { controls.setTime(f.t); controls.setReplay(f.replay); }
   legend(f);
@@ -224,6 +237,22 @@ async function openSession(name) {
   } catch (err) {
     toast(`Cannot open ${name}: ${err.message}`);
   }
+}
+
+// A live session gone (the server restarted): the page joins the server's live session as
+// soon as there is one again, without a reload (a user trial's page stayed "closed").
+let liveSearch = null;
+function findLive() {
+  if (liveSearch) return;
+  liveSearch = setInterval(async () => {
+    const live = (await api.sessions().catch(() => ({ sessions: [] }))).sessions.find((x) => x.live);
+    if (!live) return;
+    clearInterval(liveSearch);
+    liveSearch = null;
+    app.owned = false;
+    watch(live);
+    toast("Joined the server's live session again");
+  }, 2000);
 }
 
 function watch(s) {

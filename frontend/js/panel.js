@@ -37,7 +37,8 @@ export class Panel {
 
   /** @returns {null | "warning" | "alarm"} the approach alarm level shown (none on an
    *  untrusted pose: the figures are then greyed, see status.js) */
-  update(frame, trusted = true) {
+  /** ``noData``: nothing new from the server (the figures are left out, and said why). */
+  update(frame, trusted = true, noData = false) {
     this.trusted = trusted;
     const pose = frame?.pose;
     const berth = frame?.overlay?.berth;
@@ -49,7 +50,7 @@ export class Panel {
     }
     const bow = this._end("bow", berth, trusted ? levels.bow : null);
     const stern = this._end("stern", berth, trusted ? levels.stern : null);
-    this._more(berth, frame?.status && !pose);
+    this._more(berth, noData ? "no new data" : frame?.status && !pose ? "no position" : "no line");
     this.level = [bow, stern].includes("alarm") ? "alarm" : [bow, stern].includes("warning") ? "warning" : null;
     return this.level;
   }
@@ -83,11 +84,11 @@ export class Panel {
     return level || null;
   }
 
-  _more(berth, lost) {
+  _more(berth, why) {
     const set = (id, html) => { this.el(id).innerHTML = html; };
     if (!berth) {
       for (const id of ["along", "angle", "ttc"]) set(id, "–");
-      this.el("berth-method").textContent = lost ? "no position" : "no line";
+      this.el("berth-method").textContent = why;
       return;
     }
     const along = berth.along_berth_mps;
@@ -124,7 +125,10 @@ export class Panel {
     // ROT in degrees per minute, as on a ship's ROT indicator; positive = to starboard
     const rot = pose.rate_of_turn_dps * 60;
     const side = Math.abs(rot) < 0.5 ? "" : rot > 0 ? " S" : " P";
-    set("rot", `${Math.abs(rot).toFixed(0)}<span class="unit">°/min${side}</span>`);
+    // its σ once it matters (a gyro fault: the bias widened to the step, ±30°/min)
+    const rotSigma = (pose.rate_of_turn_std_dps ?? 0) * 60;
+    set("rot", `${Math.abs(rot).toFixed(0)}<span class="unit">°/min${side}`
+      + `${rotSigma >= 1 ? ` ±${rotSigma.toFixed(0)}` : ""}</span>`);
     set("cog", pose.course_deg == null ? "–" : `${pose.course_deg.toFixed(1)}<span class="unit">°</span>`);
   }
 }
