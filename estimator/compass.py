@@ -682,6 +682,17 @@ class GnssCompass:
 
     # ------------------------------------------------------------------ epoch
 
+    def _no_position_why(self, present: Sequence[GnssEpoch]) -> str:
+        """Why there is no standalone position: a live start waits for the satellites'
+        broadcast ephemerides (~30 s of navigation messages; a user trial saw 25 s of
+        "initialising" and no reason)."""
+        sats = {s for e in present for s in e.satellites if s[0] in self.systems}
+        known = sum(1 for s in sats if self.nav.ephemerides.get(s))
+        if known < 4:
+            return (f"no standalone position yet: broadcast ephemerides of {known} of "
+                    f"{len(sats)} satellites (waiting for their navigation messages)")
+        return "no standalone position yet"
+
     def update(self, epochs: Sequence[GnssEpoch | None],
                imu_tilt: tuple[float, float] | None = None) -> CompassSolution:
         """Process one epoch of every receiver (None for a receiver that has no epoch).
@@ -708,7 +719,7 @@ class GnssCompass:
                 self.prev[i] = e
         if self.position is None:
             return CompassSolution(time=time, fixed=False, method="none",
-                                   message="no standalone position yet")
+                                   message=self._no_position_why(present))
         sats = sorted({s for e in present for s in e.satellites if s[0] in self.systems})
         geo = epoch_geometry(self.nav, sats, time, self.position, self.clock_bias_s, self.mask)
         broken = {s for (_, s) in slips}

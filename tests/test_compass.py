@@ -366,3 +366,17 @@ def test_real_static_pair_conventional_baseline():
         assert abs(sol.length - length) < 0.01
         assert abs(sol.azimuth_deg - azimuth) < 0.5
         assert np.linalg.norm(sol.baseline_ned - truth) < 0.02
+
+
+def test_without_ephemerides_the_compass_says_it_waits_for_them(nav):
+    """A live start knows no satellite's orbit until the receivers have sent its navigation
+    message (~30 s): the compass says so, with how many it has, instead of a bare 'no
+    standalone position yet' (a user trial: 25 s of 'initialising' and no reason)."""
+    obs, _truth = simulate_gnss(SMALL_BOAT, turning, nav, START, 2.0, seed=4, errors=NO_SLIPS)
+    sats = sorted({s for e in obs[0] for s in e.satellites})
+    some = dataclasses.replace(nav, ephemerides={s: nav.ephemerides[s] for s in sats[:2]
+                                                 if s in nav.ephemerides})
+    sol = cm.GnssCompass(some, ANTENNAS).update([o[0] for o in obs], None)
+    assert not sol.fixed
+    assert "broadcast ephemerides of 2 of" in sol.message, sol.message
+    assert "waiting for their navigation messages" in sol.message

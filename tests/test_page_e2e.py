@@ -352,6 +352,22 @@ def test_overlay_greys_out_when_untrusted(page) -> None:
     shot(page, "02_untrusted_grey")
 
 
+def test_no_position_yet_says_why(page) -> None:
+    """No position and no fault (a live start waiting for the satellites' orbits): the notice
+    gives the fusion's own words, not a bare "No position"."""
+    wait_trusted(page)
+    pause(page)
+    page.evaluate("""() => { const f = window.berthing.frame;
+      window.berthing.show({...f, pose: null, status: {...f.status, phase: 'initialising',
+        message: 'compass: no standalone position yet: broadcast ephemerides of 2 of 12 '
+                 + 'satellites (waiting for their navigation messages)',
+        integrity: {...f.status.integrity, mode: 'no position', trusted: false, reasons: [],
+                    hpl_m: null, heading_pl_deg: null}}}); }""")
+    notice = page.locator("#untrusted").inner_text()
+    assert notice.startswith("Overlay not reliable: No position — compass: no standalone"), notice
+    assert "ephemerides of 2 of 12" in notice
+
+
 def test_the_rate_of_turn_shows_its_sigma_when_it_matters(page) -> None:
     """A gyro fault widens the rate of turn's σ (``integrity.YawStepCheck``: 0.5°/s, 30°/min):
     the ROT readout says ±30; a usual σ (a few hundredths of a °/s) is not printed."""

@@ -30,7 +30,9 @@ export function assess(frame) {
   if (!frame.pose && !(ig && !ig.trusted)) reasons.push("No position — no fused pose for this frame");
   if (ig && !ig.trusted) {
     const mode = MODE_TEXT[ig.mode] || ig.mode;
-    reasons.push(ig.reasons.length ? `${mode} — ${ig.reasons[0]}` : mode);
+    // no reason from the integrity (no position yet): the fusion's own words say why
+    const why = ig.reasons[0] || (ig.mode === "no position" ? st.message : "");
+    reasons.push(why ? `${mode} — ${why}` : mode);
     for (const r of ig.reasons.slice(1)) advisories.push(r);
   } else if (ig) {
     for (const r of ig.reasons) advisories.push(r); // warnings the fusion works around
