@@ -37,12 +37,13 @@ from .cpp import (
     eta_observations,
     loose_velocity,
     origin_sensitivity,
+    receiver_steps,
     robust_lsq,
     tdcp_fit,
     velocity_map,
 )
 from .ekf import EkfConfig, ErrorStateEkf, EtaInput, SdRow, VelocityInput, chi2_gate
-from .frames import dcm_to_rotvec, ecef_to_ned, ned_to_ecef, rotvec_to_dcm
+from .frames import SPEED_OF_LIGHT, dcm_to_rotvec, ecef_to_ned, ned_to_ecef, rotvec_to_dcm
 from .gnss_epochs import N_RECEIVERS, GnssFront
 from .integrity import IntegrityMonitor
 from .options import FusionOptions, WorldOrigin
@@ -280,14 +281,18 @@ class CarrierPhaseCoupling:
         self.drift = CorrelatedDrift()
         self.activity = AtmosphereActivity()  # scales the drift and its overbound (the HPL's)
         self.gyro = GyroCheck(config)
+        self._stepped: set[int] = set()  # receivers whose ranges stepped at the last epoch
 
     def update(self, t: float, epochs: list[GnssEpoch | None], ekf: ErrorStateEkf,
                origin: WorldOrigin, front: GnssFront) -> None:
         opt, cfg = self.options, self.cfg
         front.standalone(epochs, joint=False)
         geo = front.geometry(t, epochs, ned_to_ecef(ekf.antenna_position(None), origin.llh))
+        stepped = self._receiver_steps(t, front.prev, epochs) if opt.common_clock else set()
         slips = detect_cycle_slips(front.prev, epochs, common_clock=opt.common_clock)
-        self.monitor.slips(t, len(slips), sum(len(e.satellites) for e in epochs if e is not None))
+        self.monitor.slips(t, sum(1 for i, _s in slips if i not in stepped),
+                           sum(len(e.satellites) for i, e in enumerate(epochs)
+                               if e is not None and i not in stepped))
         prev_ok = front.prev_geo is not None and ekf.clone_time is not None \
             and abs(front.prev_geo.time - ekf.clone_time) < 1e-3
         rows: list[EtaRow] = []
@@ -604,6 +609,29 @@ class CarrierPhaseCoupling:
         elif ekf.time - self.last_velocity_time > SPP_AIDING_AFTER_S:
             R = np.diag(np.square(SPP_SIGMA_M))
             ekf.update_position(spp_ned - origin.offset_ned, R)
+
+    def _receiver_steps(self, t: float, prev: Sequence[GnssEpoch | None],
+                        epochs: Sequence[GnssEpoch | None]) -> set[int]:
+        """Receivers whose ranges all stepped against the others' (``cpp.receiver_steps``: its
+        own clock or front end). Their satellites all "slip" (no velocity rows this epoch);
+        here their single-difference delay and integers are dropped to be found afresh this
+        epoch, and the fault is declared by name: a user trial's 10 µs step of receiver 2 was
+        blamed on the INS, the gyro and the VO, the integers rounded against the old delay,
+        and the heading left 0.4–0.9° off for 30 s."""
+        steps = receiver_steps(prev, epochs, self.nav)
+        for j in [j for j in self._stepped if j not in steps]:
+            self.monitor.clear(f"receiver-{j + 1}-step", t,
+                               f"receiver {j + 1}'s ranges continuous with the others' again")
+        self._stepped = set(steps)
+        for j, step in steps.items():
+            self.delays_known.discard(j)
+            self.integers.drop([key for key in self.integers.A if key[0] == j])
+            self.monitor.raise_fault(
+                f"receiver-{j + 1}-step", t,
+                f"receiver {j + 1}'s ranges all jumped {step:+.1f} m against the other "
+                f"receivers' ({step / SPEED_OF_LIGHT * 1e6:+.2f} µs of its clock): its carrier "
+                "phase taken afresh")
+        return self._stepped
 
     @staticmethod
     def _common_range_change(rows: Sequence[EtaRow], ekf: ErrorStateEkf) -> float:

@@ -344,6 +344,41 @@ def eta_observations(
     return EtaSet(time=time, rows=rows, rejected=rejected)
 
 
+# One receiver's ranges changing, from one epoch to the next, by more than this against the
+# other receivers' (the same satellites; antennas 10 cm apart differ by centimetres): a step
+# of its own clock or front end, not motion
+RECEIVER_STEP_M = 1.0
+
+
+def receiver_steps(prev_epochs: Sequence[GnssEpoch | None],
+                   curr_epochs: Sequence[GnssEpoch | None],
+                   nav: NavigationData | None = None) -> dict[int, float]:
+    """Receivers whose carrier-phase ranges all stepped since the previous epoch against the
+    other receivers' on the same satellites (m, the median over their satellites):
+    receiver → step. A common clock is the same for all, and the antennas 10 cm apart change
+    by centimetres: one receiver's step is its own clock or front end. Needs three receivers
+    on a satellite, so that the others outvote the one that is off. (Every satellite of it
+    is then a "slip" to ``detect_cycle_slips``: this says they are one fault.)"""
+    by_sat: dict[str, dict[int, float]] = {}
+    for i, (prev, curr) in enumerate(zip(prev_epochs, curr_epochs, strict=True)):
+        if prev is None or curr is None:
+            continue
+        for sat, ob in curr.satellites.items():
+            p0 = _phase(prev, sat)
+            if math.isfinite(p0) and math.isfinite(ob.carrier_phase):
+                by_sat.setdefault(sat, {})[i] = (ob.carrier_phase - p0) \
+                    * carrier_wavelength(sat, nav)
+    diffs: dict[int, list[float]] = {}
+    for seen in by_sat.values():
+        if len(seen) < 3:
+            continue
+        middle = float(np.median(list(seen.values())))  # a good receiver's, or between two
+        for i, v in seen.items():
+            diffs.setdefault(i, []).append(v - middle)
+    steps = {i: float(np.median(d)) for i, d in diffs.items() if len(d) >= 4}
+    return {i: d for i, d in steps.items() if abs(d) > RECEIVER_STEP_M}
+
+
 def velocity_map(rows: Sequence[EtaRow], C_ecef_to_level: np.ndarray, rate_sigma: float,
                  min_satellites: int = 4) -> tuple[list[str], np.ndarray] | None:
     """The satellites of ``rows`` and what an error of each one's range rate does to the

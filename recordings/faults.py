@@ -21,7 +21,7 @@ what the estimator reads.
 | receiver-missing | the last receiver's file and antenna removed | – |
 | receiver-silent | one receiver without epochs | receiver (1-based), start, length (4, 40, 10) |
 | cycle-slips | every satellite of every receiver slips (1–30 cycles, unflagged) at once | at (40) |
-| clock-jump | the common receiver clock jumps | at, ms (40, 1) |
+| clock-jump | the common clock jumps (or one receiver's: 1-based, 0 all) | at, ms, rx (40, 1, 0) |
 | spp-outlier | every pseudorange off by 1–5 km (a broken code loop) | start, length (40, 10) |
 | iono-storm | an ionosphere stronger than broadcast: the fix metres off | extra × Klobuchar (1) |
 | half-sky | satellites of the quay-side half of the sky (north) lost from the start | – |
@@ -67,7 +67,13 @@ class Fault:
 
     @property
     def name(self) -> str:
-        return ":".join([self.kind, *(f"{p:g}" for p in self.params)])
+        params = list(self.params)
+        # a parameter added later is named only when it is not its default: the names (and
+        # the campaign's tasks) of before stay what they were
+        for _ in range(ADDED_LATER.get(self.kind, 0)):
+            if params and params[-1] == DEFAULTS[self.kind][len(params) - 1]:
+                params.pop()
+        return ":".join([self.kind, *(f"{p:g}" for p in params)])
 
 
 DEFAULTS: dict[str, tuple[float, ...]] = {
@@ -75,11 +81,13 @@ DEFAULTS: dict[str, tuple[float, ...]] = {
     "imu-spikes": (40.0, 5.0), "imu-saturated": (40.0, 5.0), "imu-backwards": (40.0, 0.5),
     "imu-bias": (40.0, 0.3), "gyro-bias": (40.0, 1.0),
     "receiver-missing": (), "receiver-silent": (4.0, 40.0, 10.0), "cycle-slips": (40.0,),
-    "clock-jump": (40.0, 1.0), "spp-outlier": (40.0, 10.0), "iono-storm": (1.0,), "half-sky": (),
+    "clock-jump": (40.0, 1.0, 0.0), "spp-outlier": (40.0, 10.0), "iono-storm": (1.0,),
+    "half-sky": (),
     "video-zeroed": (3.0, 1.0), "video-end": (45.0,), "video-frozen": (40.0, 5.0),
     "video-black": (40.0, 3.0), "video-blinded": (40.0, 3.0),
 }
 FAULTS = tuple(DEFAULTS)
+ADDED_LATER = {"clock-jump": 1}  # trailing parameters a kind gained (``Fault.name``)
 # The parameter that is a time after the recording start (where the damage begins), by kind
 TIME_PARAM = {k: 0 for k in DEFAULTS if k not in ("receiver-missing", "iono-storm", "half-sky",
                                                   "video-zeroed")} | {"receiver-silent": 1}
@@ -285,10 +293,14 @@ def _cycle_slips(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
 
 def _clock_jump(rec: Recording, out: Path, p: tuple[float, ...]) -> None:
     t_jump = float(rec.manifest.start_gpst) + p[0]
-    dm = SPEED_OF_LIGHT * p[1] * 1e-3  # m: the common clock jumps by p[1] ms
+    dm = SPEED_OF_LIGHT * p[1] * 1e-3  # m: the clock jumps by p[1] ms
+    receivers = len(rec.manifest.files["gnss_obs"])
+    only = int(p[2]) - 1  # -1: every receiver (the common clock)
+    if p[2] != int(p[2]) or only >= receivers:
+        raise ValueError(f"clock-jump: receiver {p[2]:g} is not one of 1…{receivers} (0: all)")
 
-    def edit(_i: int, ep: GnssEpoch) -> GnssEpoch:
-        if ep.time < t_jump - 1e-6:
+    def edit(i: int, ep: GnssEpoch) -> GnssEpoch:
+        if ep.time < t_jump - 1e-6 or only not in (-1, i):
             return ep
         sats = {}
         for s, o in ep.satellites.items():
