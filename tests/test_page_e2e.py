@@ -936,6 +936,29 @@ def test_frames_that_stop_coming_grey_the_page_within_a_second(page, server: str
                            timeout=5000)
 
 
+def test_a_page_that_falls_behind_says_so_and_withholds_the_figures(page) -> None:
+    """The browser itself falls behind (starved of CPU: a user trial's page showed data 8 s
+    old, the server and another client 0.6 s): each picture takes 2.5 s to decode here. The
+    page measures how much later than the best case it shows a frame (its server time and
+    the fastest transport seen, so the two machines' clocks may differ) and, beyond 1.5 s,
+    says so, stops trusting and withholds the figures; decoding quickly again, it recovers."""
+    wait_trusted(page)
+    page.evaluate("""() => { window._bitmap = window.createImageBitmap;
+      window.createImageBitmap = async (b) => {
+        await new Promise((r) => setTimeout(r, 2500)); return window._bitmap(b); }; }""")
+    try:
+        page.wait_for_function("() => window.berthing.stats.connection === 'behind' "
+                               "&& !window.berthing.trust.trusted", timeout=15000)
+        notice = page.locator("#untrusted").inner_text()
+        assert "s behind the sensors — figures withheld" in notice, notice
+        assert page.locator("#hdg").inner_text().strip() == "–"
+        shot(page, "08b_display_behind")
+    finally:
+        page.evaluate("() => { window.createImageBitmap = window._bitmap; }")
+    page.wait_for_function("() => window.berthing.stats.connection === 'live' "
+                           "&& window.berthing.trust.trusted", timeout=20000)
+
+
 def test_stream_reconnects(page) -> None:
     f1 = wait_frame(page)
     page.evaluate("() => window.berthing.dropConnection()")

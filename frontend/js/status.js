@@ -8,6 +8,7 @@ const CONN = {
   connecting: ["connecting", "warn"],
   live: ["live", "ok"],
   stale: ["no frames", "warn"],
+  behind: ["behind", "bad"],
   reconnecting: ["reconnecting", "bad"],
   closed: ["closed", "bad"],
 };
@@ -72,6 +73,7 @@ export class Status {
 
   setConnection(state, detail) {
     this.connection = state;
+    this.connectionDetail = detail;
     const [text, level] = CONN[state] || [state, "warn"];
     this._chip("conn", text, level, detail || "");
     this._notice();
@@ -82,7 +84,7 @@ export class Status {
     const st = frame?.status;
     this.trust = assess(frame);
     // no new frame for a while (or no connection): what is on screen is the past
-    const frozen = ["stale", "reconnecting", "closed"].includes(this.connection);
+    const frozen = ["stale", "behind", "reconnecting", "closed"].includes(this.connection);
     if (frozen) this.trust = { ...this.trust, trusted: false };
     if (!st) {
       for (const id of ["compass", "sats", "vo", "scale"]) this._chip(id, "–", "warn");
@@ -118,6 +120,8 @@ export class Status {
       reasons.unshift("Connection lost — picture frozen");
     } else if (this.connection === "stale") {
       reasons.unshift("No new frames — picture frozen");
+    } else if (this.connection === "behind") {
+      reasons.unshift(`Display ${this.connectionDetail || "behind"} the sensors — figures withheld`);
     }
     const all = [...reasons, ...this.trust.advisories];
     this.notice.hidden = all.length === 0;

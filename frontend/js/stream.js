@@ -12,6 +12,11 @@ const RECONNECT_MS = [500, 1000, 2000, 4000, 5000];
 const STALE_MIN_MS = 1000;
 const staleMs = (speed) => (typeof speed === "number" && speed > 0
   ? Math.max(STALE_MIN_MS, 300 / speed) : STALE_MIN_MS);
+// A frame shown this much later than frames can be (its server time against the best
+// transport seen): the page itself is behind (a starved browser showed data 8 s old, no
+// warning, in a user trial); back below half of it.
+const BEHIND_S = 1.5;
+const BEST_OF_FRAMES = 300; // the best transport over this many frames (clock offset + delay)
 
 export class Stream {
   /**
@@ -22,7 +27,7 @@ export class Stream {
     this.h = handlers;
     this.ws = null;
     this.sessionId = null;
-    this.state = "idle"; // idle | connecting | live | stale | reconnecting | closed
+    this.state = "idle"; // idle | connecting | live | stale | behind | reconnecting | closed
     this.attempt = 0;
     this.header = null; // header waiting for its JPEG
     this.next = null; // newest undecoded {header, blob}
@@ -34,6 +39,8 @@ export class Stream {
     this.dropped = 0;
     this._timer = null;
     this.staleMs = STALE_MIN_MS;
+    this.transport = []; // receipt − sent_at (s, browser − server clock) of recent frames
+    this.behindS = 0; // how much later than the best case the last frame was shown
     this._stale = setInterval(() => this._checkStale(), 250);
   }
 
@@ -96,6 +103,10 @@ export class Stream {
     const msg = JSON.parse(data);
     if (msg.type === "frame") {
       this.header = msg;
+      if (typeof msg.sent_at === "number") {
+        this.transport.push(Date.now() / 1000 - msg.sent_at);
+        if (this.transport.length > BEST_OF_FRAMES) this.transport.shift();
+      }
     } else if (msg.type === "status") {
       // a seek sends no frame until it arrives (its progress is on the replay badge)
       this.playing = !!msg.session?.playing && msg.session.state !== "seeking";
@@ -132,7 +143,13 @@ export class Stream {
     this.ready = null;
     this.frames += 1;
     this.lastFrameAt = performance.now();
-    if (this.state === "stale") this._set("live");
+    // (a paused replay's frame is of then by design: a new client gets it at once)
+    this.behindS = this.playing && typeof header.processed_at === "number" && this.transport.length
+      ? Date.now() / 1000 - header.processed_at - Math.min(...this.transport) : 0;
+    if (this.behindS > BEHIND_S) this._set("behind", `${this.behindS.toFixed(1)} s behind`);
+    else if (this.state === "stale" || (this.state === "behind" && this.behindS < BEHIND_S / 2)) {
+      this._set("live");
+    }
     this.h.onFrame(header, bitmap); // the handler owns the bitmap from here (keeps it for redraws)
   }
 
