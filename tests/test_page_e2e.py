@@ -368,6 +368,27 @@ def test_no_position_yet_says_why(page) -> None:
     assert "ephemerides of 2 of 12" in notice
 
 
+def test_a_live_input_down_is_named_first_on_the_record_chip(browser, server: str) -> None:
+    """Which input is down is what a narrow header must not cut (at 1400 px a user trial
+    read "… · down: r"): it comes first on the chip."""
+    pg = _open_page(browser, server, 1400, 900)
+    try:
+        wait_frame(pg)
+        pause(pg)
+        pg.evaluate("""() => { const f = window.berthing.frame;
+          window.berthing.show({...f, live: {recording: true, record_s: 75,
+                                             inputs_down: ['rx2', 'camera']}}); }""")
+        chip = pg.locator("#st-rec")
+        assert chip.locator(".v").inner_text().startswith("rx2, camera down · ")
+        box, header = chip.bounding_box(), pg.locator(".status").bounding_box()
+        assert box is not None and header is not None
+        # the names, the first part of the chip, are on screen
+        assert box["x"] + 0.3 * box["width"] <= min(1400, header["x"] + header["width"])
+        shot(pg, "08c_live_input_down_1400")
+    finally:
+        _close(pg, server)
+
+
 def test_the_rate_of_turn_shows_its_sigma_when_it_matters(page) -> None:
     """A gyro fault widens the rate of turn's σ (``integrity.YawStepCheck``: 0.5°/s, 30°/min):
     the ROT readout says ±30; a usual σ (a few hundredths of a °/s) is not printed."""

@@ -147,8 +147,12 @@ function recordIndicator(live) {
   if (!live) return;
   chip.dataset.level = live.inputs_down.length ? "warn" : "bad";
   chip.querySelector(".k").textContent = live.recording ? "● REC" : "LIVE";
-  chip.querySelector(".v").textContent = (live.recording ? fmtTime(live.record_s) : "not recorded")
-    + (live.inputs_down.length ? ` · down: ${live.inputs_down.join(", ")}` : "");
+  const rec = live.recording ? fmtTime(live.record_s) : "not recorded";
+  // what is down first: a narrow header cuts the end of the chip (a user trial could not
+  // read which receiver had failed at 1400 px)
+  const down = live.inputs_down.length ? `${live.inputs_down.join(", ")} down` : "";
+  chip.querySelector(".v").textContent = down ? `${down} · ${rec}` : rec;
+  chip.title = down ? `inputs down: ${live.inputs_down.join(", ")}; recording: ${rec}` : rec;
 }
 
 // Targets and berth lines set or removed by this page show at once, until the frames from the
