@@ -139,7 +139,9 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
                     frames_seen.append(page[1].evaluate(
                         "() => ({f: window.berthing.frame?.frame ?? null, "
                         "rec: document.querySelector('#st-rec').hidden ? null : "
-                        "document.querySelector('#st-rec').textContent})"))
+                        "document.querySelector('#st-rec').textContent, "
+                        "replay: !document.querySelector('#play').hidden "
+                        "|| !document.querySelector('#seek').hidden})"))
                 assert time.monotonic() < deadline + 120, \
                 f"the live run did not end ({caught_up or 'the emulator still playing'})"
             status = json.loads(_get(f"{base}/api/sessions/{live['id']}"))
@@ -238,6 +240,8 @@ def test_page_streams_the_live_session_with_the_record_indicator(live_run):
     frames = [s["f"] for s in seen if s["f"] is not None]
     assert len(set(frames)) >= 5, f"the page showed frames {frames}"
     assert any(s["rec"] and "REC" in s["rec"] for s in seen), seen[-3:]
+    # a live session has nothing to play, pause or seek: no replay controls
+    assert not any(s["replay"] for s in seen if s["f"] is not None), seen[-3:]
 
 
 def test_bridge_nmea_parses_and_agrees(live_run):

@@ -68,6 +68,11 @@ export class Controls {
 
   /** From a session status (SessionStatus schema). */
   updateSession(s) {
+    // a live session runs at the sensors' pace: nothing to play, pause, seek or speed up
+    const live = !!s.live;
+    for (const el of [this.play, this.seek, this.duration, this.speed.closest("label")]) {
+      el.hidden = live;
+    }
     this.playing = !!s.playing;
     this.play.textContent = this.playing ? "❚❚" : "▶";
     this.play.title = this.playing ? "Pause (space)" : "Play (space)";

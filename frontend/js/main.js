@@ -453,7 +453,10 @@ $("zoom-out").addEventListener("click", () => plan.zoom(1));
 
 document.addEventListener("keydown", (ev) => {
   if (ev.target.closest("input, select, textarea")) return;
-  if (ev.key === " ") { ev.preventDefault(); controls.playing ? control({ action: "pause" }) : play(); }
+  if (ev.key === " ") {
+    ev.preventDefault();
+    if (!app.session?.live) controls.playing ? control({ action: "pause" }) : play();
+  }
   else if (ev.key === "n" || ev.key === "N") el.theme.click();
   else if (ev.key === "Escape" && app.picking) stopPicking();
 });
