@@ -70,3 +70,20 @@ def test_parser_line_numbers_and_checksumless_lines():
     assert p.parse_line("$IMU,1,0,0,0,0,0,-9.8") is not None  # no checksum: accepted
     assert p.parse_line("$IMU,2,0,0,0,0,0,inf") is None
     assert p.last_rejection == "line 2: accel_z is inf"
+
+
+def test_one_line_far_ahead_does_not_reject_the_good_ones_after_it():
+    """A line 2 s ahead (a corrupt time that still checks out) made every good line of the
+    next 2 s "not after the previous sample's" (a user trial: 200 samples lost). It is passed
+    on (the merge drops it against the receivers' clock), and the order stays the good
+    lines' until one follows it; a real jump (a gap) is followed, and taken."""
+    p = TextImuParser()
+    lines = [format_line(T0 + 0.01 * k, np.zeros(3), np.array([0, 0, -9.8])) for k in range(300)]
+    got = [p.parse_line(x) for x in lines[:100]]
+    assert p.parse_line(format_line(T0 + 3.0, np.zeros(3), np.array([0, 0, -9.8]))) is not None
+    got += [p.parse_line(x) for x in lines[100:]]
+    assert all(g is not None for g in got) and not p.rejected
+    # a gap: the stream goes on from the later time
+    assert p.parse_line(format_line(T0 + 10.0, np.zeros(3), np.array([0, 0, -9.8])))
+    assert p.parse_line(format_line(T0 + 10.01, np.zeros(3), np.array([0, 0, -9.8])))
+    assert p.parse_line(lines[-1]) is None and "time not after" in p.last_rejection
