@@ -272,6 +272,9 @@ class LiveInput(BaseModel):
     late: int = Field(description="messages dropped: they came after the merge passed them")
     ahead: int = Field(0, description="messages dropped: their time tag was ahead of the "
                                       "receivers' clock by more than half a second")
+    rejected: int = Field(0, description="messages or lines the decoder rejected (bad "
+                                         "checksum, unparsable, out of range)")
+    last_rejection: str | None = Field(None, description="why the last one was rejected")
     last_gpst: float | None
     error: str | None
 

@@ -416,6 +416,8 @@ class LiveSource:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._closers: dict[str, Callable[[], None]] = {}
+        # each input's decoder (its ``rejected_total`` and ``last_rejection``, when it has)
+        self._decoders: dict[str, Any] = {}
         self._lock = threading.Lock()
         self.leap_seconds: int | None = None
 
@@ -429,7 +431,7 @@ class LiveSource:
         cfg = self.config
         if cfg.imu.kind == "text":  # a UDP port is bound first: nothing sent to it is lost
             self._spawn("imu", lambda: open_stream(cfg.imu.url or "", cfg.stall_timeout_s),
-                        lambda s: TextImuSource(s))
+                        lambda s: self._decoder("imu", TextImuSource(s)))
         for i, url in enumerate(cfg.receivers):
             self._spawn(f"rx{i + 1}", lambda url=url: open_stream(url, cfg.stall_timeout_s),
                         lambda s, i=i: self._receiver(s, i))
@@ -446,10 +448,16 @@ class LiveSource:
         src = UbxGnssSource(stream, assembler=_QueuedAssembler(self.assembler, self.aligner,
                                                                 name),  # type: ignore[arg-type]
                             imu=imu, name=name)
+        self._decoder(name, src)
         for item in src:
             if src.rawx.leap_seconds is not None:
                 self.leap_seconds = src.rawx.leap_seconds
             yield item
+
+    def _decoder(self, name: str, decoder: Any) -> Any:
+        with self._lock:
+            self._decoders[name] = decoder
+        return decoder
 
     def _spawn(self, name: str, opener: Callable[[], Any],
                reader: Callable[[Any], Iterable[Any]]) -> None:
@@ -504,7 +512,19 @@ class LiveSource:
                 yield msg
 
     def health(self) -> list[dict[str, Any]]:
-        return [h.as_dict() for h in self.aligner.health.values()]
+        """Each input's ``StreamHealth``, with what its decoder rejected (bad checksums,
+        garbage lines): an input that sends only garbage is "silent" to the engine, and this
+        says why (a user trial)."""
+        with self._lock:
+            decoders = dict(self._decoders)
+        out = []
+        for name, h in self.aligner.health.items():
+            d = h.as_dict()
+            dec = decoders.get(name)
+            d["rejected"] = int(getattr(dec, "rejected_total", 0))
+            d["last_rejection"] = getattr(dec, "last_rejection", None)
+            out.append(d)
+        return out
 
     def close(self) -> None:
         self._stop.set()

@@ -141,6 +141,15 @@ class TextImuSource:
         self.stream = stream
         self.parser = TextImuParser()
 
+    @property
+    def rejected_total(self) -> int:
+        """Lines rejected so far (``TextImuParser.rejected``)."""
+        return sum(self.parser.rejected.values())
+
+    @property
+    def last_rejection(self) -> str | None:
+        return self.parser.last_rejection
+
     def __iter__(self) -> Iterator[ImuMessage]:
         while True:
             line = self.stream.readline()

@@ -288,6 +288,15 @@ class UbxGnssSource:
         self.bad_messages += 1
         self.last_error = f"{self.name}: {err}"
 
+    @property
+    def rejected_total(self) -> int:
+        """Messages rejected so far (bad checksum, unparsable)."""
+        return self.bad_messages
+
+    @property
+    def last_rejection(self) -> str | None:
+        return self.last_error
+
     def __iter__(self) -> Iterator[GnssEpoch | ImuMessage]:
         reader = UBXReader(self.stream, protfilter=UBX_PROTOCOL, quitonerror=1,
                            errorhandler=self._error)

@@ -229,6 +229,9 @@ def test_live_trajectory_matches_the_replay(live_run):
     from backend.live_session import MAX_QUEUED_FRAMES
 
     seen = status["frames_processed"] + status["live"]["skipped_frames"] + MAX_QUEUED_FRAMES
+    # a clean run: no input dropped a time tag ahead of the clock, nor had garbage rejected
+    inputs = {i["name"]: i for i in status["live"]["inputs"]}
+    assert all(i["ahead"] == 0 and i["rejected"] == 0 for i in inputs.values()), inputs
     assert seen >= 0.95 * len(rec.frame_times), json.dumps(
         {k: status[k] for k in ("state", "time_s", "frames_processed", "error", "live")})
 

@@ -52,7 +52,8 @@ def test_lines_over_udp_with_bad_lines_rejected_and_counted():
     np.testing.assert_allclose([s.gyro for s in got], gyro, atol=1e-9)
     np.testing.assert_allclose([s.accel for s in got], accel, atol=1e-9)
     p = src.parser
-    assert sum(p.rejected.values()) == len(bad)
+    assert sum(p.rejected.values()) == len(bad) == src.rejected_total  # (the input's health)
+    assert src.last_rejection == p.last_rejection and "not ASCII" in src.last_rejection
     reasons = set(p.rejected)
     assert "6 fields, expected 7" in reasons
     assert "gyro_x is nan" in reasons
