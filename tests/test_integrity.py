@@ -289,15 +289,25 @@ def clean_vo(sim_recording: Path) -> VoPass:
     return run_vo(load(sim_recording))
 
 
+def _faulty_run(sim_recording: Path, vo: VoPass | None, fault: str, tmp_path: Path,
+                **options):
+    """The recording with ``fault`` injected, fused to its end (``vo``: the VO pass to use;
+    None: the damaged copy's own), and its integrity scores from 3 s on."""
+    rec = load(inject(sim_recording, fault, tmp_path / "rec"))
+    start = rec.manifest.start_gpst
+    run = fuse(rec, run_vo(rec) if vo is None else vo,
+               FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m,
+                             **{**OPTIONS, **options}),
+               fault, start + rec.manifest.duration_s + 1e-9)
+    return rec, run, integrity_scores(rec, run, start + 3.0, start + rec.manifest.duration_s)
+
+
 @pytest.mark.parametrize("fault", list(FAULT_CASES))
 def test_fault_is_declared_and_never_misleads(fault: str, sim_recording: Path,
                                               clean_vo: VoPass, tmp_path: Path) -> None:
-    rec = load(inject(sim_recording, fault, tmp_path / "rec"))
-    vo = run_vo(rec) if fault.startswith("video") else clean_vo
+    rec, run, ig = _faulty_run(sim_recording, None if fault.startswith("video") else clean_vo,
+                               fault, tmp_path)
     start = rec.manifest.start_gpst
-    run = fuse(rec, vo, FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m,
-                                      **OPTIONS), fault, start + rec.manifest.duration_s + 1e-9)
-    ig = integrity_scores(rec, run, start + 3.0, start + rec.manifest.duration_s)
     raised = {a.kind for a in ig.alerts if a.active}
     if fault == "receiver-missing":
         # three antennas: the compass resolves on two independent baselines and the INS
@@ -386,12 +396,8 @@ def test_a_gyro_bias_is_found_by_the_single_differences(sim_recording: Path,
     second, the heading never beyond its protection level while trusted, and back within
     0.5° by the end. Without the check the single differences pull it back only a little
     each epoch while the gyro runs away."""
-    rec = load(inject(sim_recording, "gyro-bias:6:2", tmp_path / "rec"))
+    rec, run, ig = _faulty_run(sim_recording, clean_vo, "gyro-bias:6:2", tmp_path, use_vo=False)
     start = rec.manifest.start_gpst
-    run = fuse(rec, clean_vo, FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m,
-                                            use_vo=False, **OPTIONS), "gyro-bias",
-               start + rec.manifest.duration_s + 1e-9)
-    ig = integrity_scores(rec, run, start + 3.0, start + rec.manifest.duration_s)
     declared = [a.t for a in ig.alerts if a.kind == "ins-attitude" and a.active]
     assert declared and 6.0 < declared[0] <= 7.0 + 1e-6, ig.alerts
     after = integrity_scores(rec, run, start + declared[0], start + rec.manifest.duration_s)
@@ -408,12 +414,7 @@ def test_a_gyro_bias_the_vo_sees_first_is_declared_as_the_gyros(sim_recording: P
     the VO). The gyro's turn over seconds against the single differences' heading
     (``carrier_phase.GyroCheck``) says it is the gyro: declared within 2 s, and the heading
     never beyond its protection level while trusted."""
-    rec = load(inject(sim_recording, "gyro-bias:6:1", tmp_path / "rec"))
-    start = rec.manifest.start_gpst
-    run = fuse(rec, clean_vo, FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m,
-                                            **OPTIONS), "gyro-bias",
-               start + rec.manifest.duration_s + 1e-9)
-    ig = integrity_scores(rec, run, start + 3.0, start + rec.manifest.duration_s)
+    _rec, _run, ig = _faulty_run(sim_recording, clean_vo, "gyro-bias:6:1", tmp_path)
     gyro = [a for a in ig.alerts if a.kind == "gyro" and a.active]
     assert gyro and 6.0 < gyro[0].t <= 8.0 + 1e-6, ig.alerts
     assert "gyro" in gyro[0].message and "carrier-phase heading" in gyro[0].message
@@ -662,12 +663,8 @@ def test_one_receivers_clock_step_is_named_and_nothing_else_blamed(sim_recording
     delay a user trial saw the INS, the gyro and the VO blamed, the heading 4.8° off and
     then 0.4–0.9° for 30 s. Named as the receiver's (``cpp.receiver_steps``), its delay and
     integers are found afresh at once: nothing else is raised, and the heading holds."""
-    rec = load(inject(sim_recording, "clock-jump:6:0.01:2", tmp_path / "rec"))
+    rec, run, ig = _faulty_run(sim_recording, clean_vo, "clock-jump:6:0.01:2", tmp_path)
     start = rec.manifest.start_gpst
-    run = fuse(rec, clean_vo, FusionOptions(body_origin_height_m=rec.hull.body_origin_height_m,
-                                            **OPTIONS), "rx2-step",
-               start + rec.manifest.duration_s + 1e-9)
-    ig = integrity_scores(rec, run, start + 3.0, start + rec.manifest.duration_s)
     step = [a for a in ig.alerts if a.kind == "receiver-2-step" and a.active]
     assert step and step[0].t == pytest.approx(6.0, abs=0.01), ig.alerts
     assert "receiver 2's ranges all jumped +2997.9 m" in step[0].message, step[0].message
