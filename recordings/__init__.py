@@ -27,7 +27,7 @@ __all__ = [
     "default_files",
     "format_summary",
     "gnss_obs_file",
-    "imu_gaps",
+    "time_gaps",
     "load",
     "summary",
     "write_calibration",

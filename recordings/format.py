@@ -68,6 +68,8 @@ SCENE_POINTS_FILE = "reference/scene_points.csv"
 
 VIDEO_FPS = 10.0
 IMU_GAP_FACTOR = 5.0  # a gap is an interval longer than this many nominal sample intervals
+VIDEO_GAP_FACTOR = 2.5  # ... and in the video, than this many frame intervals (one dropped
+# frame is not worth a line)
 EARLY_END_S = 1.0  # a stream ending this long before the recording does is noted
 COMPASS_RECEIVERS = 4
 _REQUIRED_FILE_KEYS = ("video", "frame_times", "imu", "gnss_obs", "gnss_nav", "calibration",
@@ -945,7 +947,7 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
     imu, imu_notes = _read_imu(imu_path, torn is not None)
     notes += imu_notes
     _check_span(imu_path, imu.time, manifest, "IMU samples")
-    gaps = imu_gaps(imu.time)
+    gaps = time_gaps(imu.time)
     if gaps:
         notes.append(f"{files['imu']} has {len(gaps)} gap(s), longest {max(g[1] for g in gaps):.3f}"
                      f" s at {gaps[0][0]:.3f}")
@@ -1006,8 +1008,9 @@ def _early_ends(manifest: Manifest, last: dict[str, float]) -> list[str]:
             f"{manifest.duration_s:g} s" for name, t in last.items() if t < end - EARLY_END_S]
 
 
-def imu_gaps(time: np.ndarray, factor: float = IMU_GAP_FACTOR) -> list[tuple[float, float]]:
-    """(start time, length s) of every interval longer than ``factor`` x the median one."""
+def time_gaps(time: np.ndarray, factor: float = IMU_GAP_FACTOR) -> list[tuple[float, float]]:
+    """(start time, length s) of every interval longer than ``factor`` x the median one (the
+    IMU's samples, the video's frames)."""
     if len(time) < 2:
         return []
     d = np.diff(time)
@@ -1051,9 +1054,12 @@ def summary(rec: Recording) -> dict[str, Any]:
         "frame_count_mismatch": bool(v and v.frame_count != len(rec.frame_times)),
         "first_gpst": float(rec.frame_times[0]),
         "last_gpst": float(rec.frame_times[-1]),
+        # frames missing (a camera silent for a while, a live feed that stalled)
+        "gaps": [{"start_gpst": s, "length_s": round(d, 3)}
+                 for s, d in time_gaps(rec.frame_times, VIDEO_GAP_FACTOR)],
     }
     t = rec.imu.time
-    gaps = imu_gaps(t)
+    gaps = time_gaps(t)
     info["imu"] = {
         "file": files["imu"],
         "rate_hz": round(1.0 / float(np.median(np.diff(t))), 3),
@@ -1128,7 +1134,11 @@ def format_summary(info: dict[str, Any]) -> str:
     fps = "?" if v["fps"] is None else f"{v['fps']:.1f}"
     rows.append(("video", f"{v['file']}: {v['width']}x{v['height']} @ {fps} fps, "
                           f"{v['frame_count']} frames (frame times: {v['frame_times']})"
-                          + ("  MISMATCH" if v["frame_count_mismatch"] else "")))
+                          + ("  MISMATCH" if v["frame_count_mismatch"] else "")
+                          + (f", {len(v['gaps'])} gap(s), longest "
+                             f"{max(g['length_s'] for g in v['gaps']):.1f} s at "
+                             f"{v['gaps'][0]['start_gpst'] - info['start']['gpst']:.1f} s"
+                             if v["gaps"] else "")))
     imu = info["imu"]
     gaps = imu["gaps"]
     gap_text = (f"{len(gaps)} gap(s), longest {max(g['length_s'] for g in gaps):.3f} s"

@@ -741,3 +741,24 @@ def test_writers_refuse_bad_data(tmp_path: Path) -> None:
     m = Manifest("n", None, None, START, 1.0, ORIGIN_DEG, extra={"version": 3})
     with pytest.raises(RecordingError, match="clash"):
         fmt.write_manifest(tmp_path, m)
+
+
+def test_video_gaps_reported(rec_dir: Path) -> None:
+    """Frames missing (a camera silent for a while, a live feed that stalled) are listed as
+    the IMU's and the receivers' gaps are (a user trial: ``info`` did not mention a live
+    recording's video gap)."""
+    times = fmt.load(rec_dir, load_gnss=False).frame_times
+
+    def later(lines: list[str]) -> None:  # frames 3 on came 0.5 s later (the header first)
+        for k in range(4, len(lines)):
+            frame, t = lines[k].split(",")
+            lines[k] = f"{frame},{float(t) + 0.5:.6f}"
+
+    edit_lines(rec_dir / "frames.csv", later)
+    rec = fmt.load(rec_dir, load_gnss=False)
+    info = fmt.summary(rec)
+    gaps = info["video"]["gaps"]
+    assert len(gaps) == 1 and gaps[0]["start_gpst"] == pytest.approx(times[2])
+    assert gaps[0]["length_s"] == pytest.approx(times[3] - times[2] + 0.5, abs=1e-3)
+    video = next(ln for ln in fmt.format_summary(info).splitlines() if ln.startswith("video"))
+    assert "1 gap(s), longest 0.6 s at 0.2 s" in video, video
