@@ -301,9 +301,11 @@ class Fusion:
             scale = ekf.vo.scale
             s_sigma = math.sqrt(max(ekf.P[ekf.ix.S, ekf.ix.S][0, 0], 0.0))
             converged = s_sigma < SCALE_CONVERGED * abs(scale)
+        gnss = carrier is not None and not self.monitor.is_active("gnss-silent")
         # The compass attitude: its own fix before the INS runs, then the EKF's single
-        # differences with fixed integers (False while the heading rests on the gyro alone).
-        fixed = self.compass.fixed if carrier is None else carrier.n_sd_sats > 0
+        # differences with fixed integers (False while the heading rests on the gyro alone,
+        # as when the receivers have gone silent: not "fixed" beside 0 satellites)
+        fixed = self.compass.fixed if carrier is None else gnss and carrier.n_sd_sats > 0
         message = carrier.message if carrier is not None and carrier.message \
             else self.alignment.message
         integrity = self.monitor.assess(
@@ -311,7 +313,6 @@ class Fusion:
             None if ekf is None else ekf.P[ekf.ix.R, ekf.ix.R],
             None if ekf is None else float(ekf.P[ekf.ix.E, ekf.ix.E][2, 2]),
             1.0 if carrier is None else carrier.activity.scale)
-        gnss = carrier is not None and not self.monitor.is_active("gnss-silent")
         return FusionStatus(phase=phase, compass_fixed=fixed,
                             satellites=carrier.n_sats if gnss else 0,
                             vo_status=vo_status, scale=scale, scale_converged=converged,

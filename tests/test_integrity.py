@@ -673,3 +673,26 @@ def test_one_receivers_clock_step_is_named_and_nothing_else_blamed(sim_recording
     err = run_errors(run, rec.reference, start, start + 3.0)
     after = np.abs(np.degrees(err.heading[run.time - start >= 6.0]))
     assert np.nanmax(after) < 0.3, np.nanmax(after)
+
+
+def test_the_compass_is_not_fixed_once_the_receivers_are_silent(sim_recording: Path) -> None:
+    """Every receiver silent from 7 s: the status says gnss-silent and 0 satellites, and the
+    compass no longer "fixed" (its integers are known, but no single difference holds the
+    heading: the gyro does). A user trial's page read COMPASS fixed beside SATS 0."""
+    rec = load(sim_recording)
+    start = rec.manifest.start_gpst
+    f = Fusion(rec.calibration, rec.nav, FusionOptions(
+        body_origin_height_m=rec.hull.body_origin_height_m, use_vo=False, **OPTIONS))
+    before = None
+    for m in sensor_messages(rec, frames=False):
+        if isinstance(m, GnssMessage):
+            if m.t - start >= 7.0:
+                continue
+            f.process_gnss(m.t, list(m.epochs))
+            before = f.status()
+        else:
+            f.process_imu(m.t, m.gyro, m.accel)
+    assert before is not None and before.compass_fixed and before.satellites > 4
+    after = f.status()
+    assert f.monitor.is_active("gnss-silent")
+    assert after.satellites == 0 and not after.compass_fixed, after
