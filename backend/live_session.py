@@ -343,7 +343,10 @@ class LiveRunner:
 class BridgeFeed:
     """A session frame listener sending NMEA to the bridge (module docstring)."""
 
-    def __init__(self, config: BridgeConfig, *, simulated: bool = False) -> None:
+    def __init__(self, config: BridgeConfig, *, simulated: bool = False,
+                 now_gpst: Callable[[], float | None] | None = None) -> None:
+        """``now_gpst``: the sensors' time now (live), to send each state as of now."""
+        self.now_gpst = now_gpst
         sinks: list[SentenceSink] = []
         self.udp = self.tcp = None
         if config.udp is not None:
@@ -360,8 +363,10 @@ class BridgeFeed:
     def __call__(self, session: Session, result: FrameResult) -> None:
         if result.state is None or not result.live:
             return
-        self.sent += len(self.output.update(bridge_state(result.state,
-                                                         simulated=self.simulated)))
+        now = self.now_gpst() if self.now_gpst is not None else None
+        ahead = 0.0 if now is None else now - float(result.state.time)
+        self.sent += len(self.output.update(bridge_state(result.state, simulated=self.simulated,
+                                                         ahead_s=ahead)))
         self.sent += len(self.output.alerts(bridge_alerts(session.alarms.all(),
                                                           session.start_gpst)))
 
@@ -427,7 +432,8 @@ def start_live_session(manager: SessionManager, config: LiveConfig, *,
 
     session = manager.add(rec, config.name, runner, options or {}, integrity=integrity)
     if config.bridge.udp is not None or config.bridge.tcp is not None:
-        feed = BridgeFeed(config.bridge)
+        clock = source.aligner.clock
+        feed = BridgeFeed(config.bridge, now_gpst=lambda: clock.to_gpst(time.monotonic()))
         session.frame_listeners.append(feed)
         session.closers.append(feed.close)
     return session

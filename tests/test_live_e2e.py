@@ -18,13 +18,14 @@ import subprocess
 import sys
 import time
 import urllib.request
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 import pytest
 from pynmeagps import NMEAReader
 
-from estimator.frames import ecef_to_ned, geodetic_to_ecef
+from estimator.frames import ecef_to_ned, geodetic_to_ecef, gpst_from_datetime
 
 ROOT = Path(__file__).resolve().parent.parent
 ARTIFACTS = ROOT / "tests" / "artifacts"
@@ -265,9 +266,29 @@ def test_bridge_nmea_parses_and_agrees(live_run):
     assert gga, "no GGA with a trusted position"
     lat, lon = float(gga[-1].lat), float(gga[-1].lon)
     assert np.min(np.hypot(live["lat_deg"][fused] - lat, live["lon_deg"][fused] - lon)) < 2e-6
-    hdt = [float(m.headingT) for m in udp_sentences if m.msgID == "HDT" and m.headingT != ""]
-    yaw = live["yaw_deg"][fused] % 360
-    assert hdt and min(abs((hdt[-1] - y + 180) % 360 - 180) for y in yaw) < 0.1
+    # Each update's heading is the ship's at the time its GGA gives (the state carried from
+    # its frame to the sending, ``bridge_state``): against the recording's truth there.
+    from recordings.format import load
+
+    ref = load(live_run["recording"], load_gnss=False).reference
+    errors = []
+    for d in datagrams:
+        got = {}
+        for part in d[6:].split(b"\\")[1:]:
+            if part.startswith(b"$"):
+                got.update({m.msgID: m for m in _sentences(part)})
+        hdt, gga, zda = got.get("HDT"), got.get("GGA"), got.get("ZDA")
+        if hdt is None or gga is None or zda is None or hdt.headingT == "" or gga.quality != 1:
+            continue
+        g = gga.time
+        utc = datetime(int(zda.year), int(zda.month), int(zda.day), g.hour, g.minute, g.second,
+                       g.microsecond)
+        t = gpst_from_datetime(utc) + 18.0  # UTC to GPS time: the bridge's leap seconds
+        yaw = math.degrees(float(ref.interpolate(np.array([t]))[2][0, 2]))
+        if math.isfinite(yaw):  # (the last may be after the recording's end)
+            errors.append(abs((float(hdt.headingT) - yaw + 180) % 360 - 180))
+    assert len(errors) >= 5, errors
+    assert np.median(errors) < 0.3 and max(errors) < 1.0, errors
 
 
 def test_recording_written_live_loads_and_replays(live_run):
