@@ -74,8 +74,12 @@ class GnssClock:
 
     Each epoch gives gpst − arrival = offset − delay (the receiver's output and transport
     delay, ≥ 0); the largest value over the last ``window`` epochs is the one with the least
-    delay, taken as the offset. Values more than ``FUTURE_TOLERANCE_S`` above the median (from
-    three epochs on) are a wrong time tag, not a short delay: left out."""
+    delay, taken as the offset. Values more than ``FUTURE_TOLERANCE_S`` above the median are
+    a wrong time tag, not a short delay: left out. Unknown (None) until ``MIN_EPOCHS`` epochs
+    give a median: the first epoch alone, tagged an hour ahead, set the clock an hour on (a
+    user trial)."""
+
+    MIN_EPOCHS = 3
 
     def __init__(self, window: int = 60):
         self._samples: deque[float] = deque(maxlen=window)
@@ -85,8 +89,7 @@ class GnssClock:
         if not math.isfinite(t_gpst):
             return
         self._samples.append(t_gpst - arrival_mono)
-        if len(self._samples) < 3:
-            self._offset = max(self._samples)
+        if len(self._samples) < self.MIN_EPOCHS:
             return
         top = statistics.median(self._samples) + FUTURE_TOLERANCE_S
         self._offset = max(v for v in self._samples if v <= top)
@@ -152,6 +155,7 @@ class TimeAligner:
         self._last_group_t: float | None = None
         self.stopped: set[str] = set()
         self._undated: dict[str, list[Any]] = {}  # SFRBX received before any epoch
+        self._early: list[tuple[str, GnssEpoch, float]] = []  # epochs before the clock is known
         # gpst of the earliest message held back while the merge waits for a stream (None:
         # nothing held): the sensors are not silent up to it (read by the live session's
         # thread)
@@ -224,17 +228,26 @@ class TimeAligner:
                              lambda: self._imu.append((item, arrival)))
         elif isinstance(item, GnssEpoch):
             self.clock.observe(item.time, arrival)
-            if self._ahead(item.time, arrival, h):
+            if self.clock.offset is None:  # judged once the clock is known
+                self._early.append((stream, item, arrival))
                 return
-            for msg in self._undated.pop(stream, []):
-                if self.apply_sfrbx is not None:
-                    self.apply_sfrbx(msg, item.time)
-            self._accept(stream, item.time, _GNSS, h, arrival,
-                         lambda: self._add_epoch(stream, item, arrival))
-            self._time_frames()
+            early, self._early = self._early, []
+            for args in [*early, (stream, item, arrival)]:
+                self._epoch(*args)
         elif isinstance(item, FrameMessage):
             self._untimed.append((item, arrival))
             self._time_frames()
+
+    def _epoch(self, stream: str, epoch: GnssEpoch, arrival: float) -> None:
+        h = self.health[stream]
+        if self._ahead(epoch.time, arrival, h):
+            return
+        for msg in self._undated.pop(stream, []):
+            if self.apply_sfrbx is not None:
+                self.apply_sfrbx(msg, epoch.time)
+        self._accept(stream, epoch.time, _GNSS, h, arrival,
+                     lambda: self._add_epoch(stream, epoch, arrival))
+        self._time_frames()
 
     def _ahead(self, t: float, arrival: float, h: StreamHealth) -> bool:
         """Whether a time tag ``t`` is ahead of the GNSS clock at its arrival (dropped)."""

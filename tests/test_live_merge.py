@@ -132,3 +132,19 @@ def test_the_merge_says_from_when_it_holds_messages_back():
     a._release = spy  # type: ignore[method-assign]
     feed.run(0.5, skip=("rx2", 0.0, 0.5))
     assert seen and 0.05 < max(seen) < 0.5, seen
+
+
+def test_the_first_epoch_tagged_ahead_does_not_set_the_clock():
+    """Receiver 1's very first epoch is tagged an hour ahead and the others come a little
+    later (as when one receiver is up first): the clock, from that epoch alone, ran an hour
+    on and the session never had a position (a second user trial). The clock now waits for
+    three epochs' median, and judges the first ones by it."""
+    a = TimeAligner(receivers=2, max_lag_s=0.3)
+    feed = Feed(a)
+    feed.run(2.0, epoch_tag=lambda rx, k, t: t + 3600.0 if (rx, k) == ("rx1", 10) else t)
+    h = a.health
+    assert h["rx1"].ahead == 1 and h["rx1"].late == 0 and h["rx2"].late == 0
+    assert h["imu"].late == 0 and len(feed.released(ImuMessage)) >= 180
+    gnss = feed.released(GnssMessage)
+    assert all(m.t - G0 < 2.5 for m in gnss) and len(gnss) >= 15
+    assert abs(a.clock.offset - (G0 - feed.m0)) < 0.05
