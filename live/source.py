@@ -429,8 +429,11 @@ class LiveSource:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._closers: dict[str, Callable[[], None]] = {}
-        # each input's decoder (its ``rejected_total`` and ``last_rejection``, when it has)
+        # each input's decoder (its ``rejected_total`` and ``last_rejection``, when it has),
+        # and what the decoders of its earlier connections rejected (a reconnection must not
+        # wipe the evidence: a user trial saw 7 rejections, then 0 a second later)
         self._decoders: dict[str, Any] = {}
+        self._rejected_before: dict[str, tuple[int, str | None]] = {}
         self._lock = threading.Lock()
         self.leap_seconds: int | None = None
 
@@ -469,6 +472,11 @@ class LiveSource:
 
     def _decoder(self, name: str, decoder: Any) -> Any:
         with self._lock:
+            old = self._decoders.get(name)
+            if old is not None:
+                n, last = self._rejected_before.get(name, (0, None))
+                self._rejected_before[name] = (n + int(getattr(old, "rejected_total", 0)),
+                                               getattr(old, "last_rejection", None) or last)
             self._decoders[name] = decoder
         return decoder
 
@@ -529,13 +537,14 @@ class LiveSource:
         garbage lines): an input that sends only garbage is "silent" to the engine, and this
         says why (a user trial)."""
         with self._lock:
-            decoders = dict(self._decoders)
+            decoders, before = dict(self._decoders), dict(self._rejected_before)
         out = []
         for name, h in self.aligner.health.items():
             d = h.as_dict()
             dec = decoders.get(name)
-            d["rejected"] = int(getattr(dec, "rejected_total", 0))
-            d["last_rejection"] = getattr(dec, "last_rejection", None)
+            n, last = before.get(name, (0, None))
+            d["rejected"] = n + int(getattr(dec, "rejected_total", 0))
+            d["last_rejection"] = getattr(dec, "last_rejection", None) or last
             out.append(d)
         return out
 

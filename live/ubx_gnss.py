@@ -1,6 +1,7 @@
 """GNSS from a u-blox receiver's UBX stream: RXM-RAWX → GnssEpoch, RXM-SFRBX → ephemerides.
 
-UBX framing and field parsing are pyubx2's; this module maps the fields onto the project's
+Field parsing is pyubx2's; the framing is ``ubx_frames``' (a fake header's length must not
+swallow the good messages after it); this module maps the fields onto the project's
 records with the conventions of the RINEX path (``recordings.rinex.l1_epochs``):
 
 - time tag: gpst = week · 604800 + rcvTow (the receiver's own time tag, GPS scale, as a
@@ -30,10 +31,10 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-from pyubx2 import UBX_PROTOCOL, UBXMessage, UBXReader
+from pyubx2 import UBXMessage, UBXReader
 
 from engine.messages import ImuMessage
 from estimator.frames import gpst_from_week_tow
@@ -87,6 +88,70 @@ class _Lock:
     sub_half: int
 
 
+UBX_SYNC = b"\xb5\x62"
+# The payload lengths the messages read here can have ((class, id) → check); any other
+# message up to OTHER_MAX_LENGTH. Line noise that looks like a header claimed 16 KB, and the
+# reader swallowed that much of the good messages after it: a receiver cut off for up to
+# 90 s (a user trial).
+_LENGTHS = {
+    (0x02, 0x15): lambda n: n >= 16 and (n - 16) % 32 == 0 and n <= 16 + 32 * 255,  # RAWX
+    (0x02, 0x13): lambda n: n >= 8 and (n - 8) % 4 == 0 and n <= 8 + 4 * 16,  # SFRBX
+    (0x10, 0x03): lambda n: n >= 4 and (n - 4) % 8 == 0 and n <= 4 + 8 * 256,  # ESF-RAW
+    (0x01, 0x20): lambda n: n == 16,  # NAV-TIMEGPS
+}
+OTHER_MAX_LENGTH = 1024
+
+
+def _checksum(frame: bytes | bytearray) -> bytes:
+    a = b = 0
+    for c in frame:
+        a = (a + c) & 0xFF
+        b = (b + a) & 0xFF
+    return bytes((a, b))
+
+
+def ubx_frames(stream: ByteStream, on_error: Callable[[Exception], None]) -> Iterator[bytes]:
+    """Whole UBX messages (sync to checksum) of a byte stream. A header whose length its
+    message cannot have (``_LENGTHS``), or a message whose checksum fails, is noise: the scan
+    goes on from the byte after its sync, so that the good messages it overlapped are found
+    (``on_error`` is told of each). Bytes between messages (NMEA, garbage) are skipped."""
+    buf = bytearray()
+
+    def fill(n: int) -> bool:
+        while len(buf) < n:
+            chunk = stream.read(n - len(buf))
+            if not chunk:
+                return False
+            buf.extend(chunk)
+        return True
+
+    while True:
+        k = buf.find(UBX_SYNC)
+        if k < 0:
+            del buf[:max(len(buf) - 1, 0)]  # (a last 0xB5 may begin a sync)
+            if not fill(len(buf) + 1):
+                return
+            continue
+        del buf[:k]
+        if not fill(6):
+            return
+        cls, mid, n = buf[2], buf[3], buf[4] | buf[5] << 8
+        ok = _LENGTHS.get((cls, mid), lambda n: n <= OTHER_MAX_LENGTH)(n)
+        if ok:
+            if not fill(8 + n):
+                return
+            ok = _checksum(buf[2:6 + n]) == bytes(buf[6 + n:8 + n])
+            if ok:
+                frame = bytes(buf[:8 + n])
+                del buf[:8 + n]
+                yield frame
+                continue
+            on_error(ValueError(f"UBX 0x{cls:02x} 0x{mid:02x}: checksum failed"))
+        else:
+            on_error(ValueError(f"UBX 0x{cls:02x} 0x{mid:02x}: length {n} impossible"))
+        del buf[:1]  # noise: scan again from the byte after its sync
+
+
 class RawxDecoder:
     """RXM-RAWX messages of one receiver → :class:`GnssEpoch` (keeps the lock history)."""
 
@@ -95,6 +160,7 @@ class RawxDecoder:
         self.glonass_slots: dict[str, int] = {}  # "R03" -> frequency number, as seen
         self.leap_seconds: int | None = None  # GPS - UTC when the receiver knows it
         self.skipped_no_time = 0  # epochs before the receiver knew the GPS week
+        self.not_finite = 0  # measurements with an infinite or NaN value (left out)
         self._last_time: float | None = None
 
     def decode(self, msg: UBXMessage) -> GnssEpoch | None:
@@ -125,6 +191,10 @@ class RawxDecoder:
             if sat[0] == "R":
                 self.glonass_slots[sat] = int(g("freqId")) - GLONASS_FREQ_ID_OFFSET
             pr = float(g("prMes")) if g("prValid") else math.nan
+            values = (g("prMes"), g("cpMes"), g("doMes"))
+            if not all(math.isfinite(float(v)) for v in values):
+                self.not_finite += 1  # a corrupt message that still checks out: left out
+                continue
             phase = math.nan
             lli = 0
             if g("cpValid"):
@@ -290,18 +360,20 @@ class UbxGnssSource:
 
     @property
     def rejected_total(self) -> int:
-        """Messages rejected so far (bad checksum, unparsable)."""
-        return self.bad_messages
+        """Messages rejected so far (noise, bad checksum, unparsable), and measurements with
+        an infinite or NaN value."""
+        return self.bad_messages + self.rawx.not_finite
 
     @property
     def last_rejection(self) -> str | None:
         return self.last_error
 
     def __iter__(self) -> Iterator[GnssEpoch | ImuMessage]:
-        reader = UBXReader(self.stream, protfilter=UBX_PROTOCOL, quitonerror=1,
-                           errorhandler=self._error)
-        for _raw, msg in reader:
-            if msg is None:
+        for raw in ubx_frames(self.stream, self._error):
+            try:
+                msg = UBXReader.parse(raw)
+            except Exception as exc:  # noqa: BLE001 - pyubx2's errors vary by version
+                self._error(exc)
                 continue
             ident = msg.identity
             if ident == "RXM-RAWX":

@@ -148,3 +148,19 @@ def test_the_first_epoch_tagged_ahead_does_not_set_the_clock():
     gnss = feed.released(GnssMessage)
     assert all(m.t - G0 < 2.5 for m in gnss) and len(gnss) >= 15
     assert abs(a.clock.offset - (G0 - feed.m0)) < 0.05
+
+
+def test_an_inputs_rejections_survive_its_reconnection():
+    """What a receiver's decoder rejected is kept when the link is reopened (a new decoder):
+    a second user trial saw 7 rejections on an input, then 0 a second later."""
+    from types import SimpleNamespace
+
+    from live.source import LiveSource
+
+    config = SimpleNamespace(receivers=["tcp://a", "tcp://b"], max_lag_s=0.5,
+                             camera=SimpleNamespace(latency_s=0.0))
+    src = LiveSource(config)  # type: ignore[arg-type]
+    src._decoder("rx1", SimpleNamespace(rejected_total=7, last_rejection="rx1: checksum"))
+    src._decoder("rx1", SimpleNamespace(rejected_total=2, last_rejection=None))
+    rx1 = next(h for h in src.health() if h["name"] == "rx1")
+    assert rx1["rejected"] == 9 and rx1["last_rejection"] == "rx1: checksum"

@@ -284,3 +284,43 @@ def test_gps_subframes_match_gpsd_decode():
     assert asm.nav.iono_alpha == (5 * 2.0**-30, 2 * 2.0**-27, -(2.0**-24), -(2.0**-24))
     assert asm.nav.iono_beta == (38 * 2.0**11, 3 * 2.0**14, -(2.0**16), -5 * 2.0**16)
     assert asm.nav.leap_seconds == 18
+
+
+def test_line_noise_does_not_swallow_the_good_messages_after_it(tmp_path: Path):
+    """Noise on the link: a fake UBX header claiming 16 KB, one with a length its message
+    can have but a wrong checksum, and 3000 random bytes, each before good RAWX messages of
+    pyubx2's capture. pyubx2's reader took the fake length and swallowed the messages after
+    it (a user trial: a receiver cut off for 29 s to the rest of a run); the random bytes
+    dropped the connection with a codec error. Every good epoch is read, the noise counted."""
+    data = RAWX.read_bytes()
+    frames = [data[k:] for k in range(len(data)) if data[k:k + 4] == b"\xb5\x62\x02\x15"]
+    cuts = [len(data) - len(f) for f in frames]
+    msgs = [data[a:b] for a, b in zip(cuts, [*cuts[1:], len(data)], strict=True)]
+    rng = np.random.default_rng(3)
+    noise = [b"\xb5\x62\x02\x15\x00\x40" + bytes(20),  # RAWX claiming 16 KB
+             b"\xb5\x62\x02\x15\x30\x00" + bytes(rng.integers(0, 256, 60, dtype=np.uint8)),
+             bytes(rng.integers(0, 256, 3000, dtype=np.uint8))]
+    stream = b"".join(m + (noise[k % 3] if k % 4 == 1 else b"") for k, m in enumerate(msgs))
+    path = tmp_path / "noisy.ubx"
+    path.write_bytes(stream)
+    src = UbxGnssSource(open_stream(str(path)))
+    epochs = list(src)
+    assert [e.time for e in epochs] == [gpst_from_week_tow(2327, 223793.0 + k) for k in range(14)]
+    assert src.rejected_total >= 3 and "UBX" in (src.last_rejection or "")
+
+
+def test_a_measurement_not_finite_is_left_out_and_counted(tmp_path: Path):
+    """A RAWX whose checksum checks out but whose Doppler is infinite (a corrupt receiver):
+    that measurement is left out and counted on the input, not handed on."""
+    from live.ubx_encode import RawxEncoder
+
+    epoch = next(iter(UbxGnssSource(open_stream(str(RAWX)))))
+    sats = {s: o for s, o in epoch.satellites.items() if s[0] != "R"}  # (GLONASS slots aside)
+    g11 = sats["G11"]
+    sats["G11"] = type(g11)(g11.pseudorange, g11.carrier_phase, math.inf, g11.snr, g11.lli)
+    path = tmp_path / "inf.ubx"
+    path.write_bytes(RawxEncoder(leap_seconds=18).encode(type(epoch)(epoch.time, sats)))
+    src = UbxGnssSource(open_stream(str(path)))
+    (got,) = list(src)
+    assert "G11" not in got.satellites and len(got.satellites) == len(sats) - 1
+    assert src.rawx.not_finite == 1 and src.rejected_total == 1
