@@ -99,7 +99,7 @@ _LENGTHS = {
     (0x10, 0x03): lambda n: n >= 4 and (n - 4) % 8 == 0 and n <= 4 + 8 * 256,  # ESF-RAW
     (0x01, 0x20): lambda n: n == 16,  # NAV-TIMEGPS
 }
-OTHER_MAX_LENGTH = 1024
+OTHER_MAX_LENGTH = 2048  # (NAV-SAT with 120 satellites: 1448)
 
 
 def _checksum(frame: bytes | bytearray) -> bytes:
