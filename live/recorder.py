@@ -124,14 +124,15 @@ class LiveRecorder:
         if time.monotonic() - self._last_sync >= SYNC_S:
             self.sync()
 
-    def _write_epoch(self, i: int, epoch: GnssEpoch, slots: dict[str, int]) -> None:
+    def _open_obs(self, i: int, t: float, slots: dict[str, int]) -> IO[str]:
+        """Receiver ``i``'s observation file, its header written (first epoch at ``t``)."""
         f = self._obs[i]
         if f is None:
             glonass = {s: k for s, k in slots.items() if s[0] == "R"}
             systems = [s for s in "GREJC" if s in RECORDED_SYSTEMS or (s == "R" and glonass)]
             lat, lon, h = (np.radians(self.origin_llh_deg[0]), np.radians(self.origin_llh_deg[1]),
                            self.origin_llh_deg[2])
-            header = obs_header(systems, epoch.time, marker_name=f"{self.name} antenna {i + 1}",
+            header = obs_header(systems, t, marker_name=f"{self.name} antenna {i + 1}",
                                 receiver_type="LIVE UBX", approx_position_ecef=geodetic_to_ecef(
                                     lat, lon, h), interval=1.0,
                                 comments=["written live by berthing-aid from UBX RXM-RAWX"],
@@ -141,6 +142,10 @@ class LiveRecorder:
             f.write("\n".join(header) + "\n")
             self._obs[i] = f
             self._obs_systems[i] = "".join(systems)
+        return f
+
+    def _write_epoch(self, i: int, epoch: GnssEpoch, slots: dict[str, int]) -> None:
+        f = self._open_obs(i, epoch.time, slots)
         kept = {s: o for s, o in epoch.satellites.items() if s[0] in self._obs_systems[i]
                 and (s[0] != "R" or s in slots)}
         self.dropped_satellites += len(epoch.satellites) - len(kept)
@@ -171,6 +176,11 @@ class LiveRecorder:
                 os.fsync(f.fileno())
         if self.start_gpst is None or self.last_gpst is None:
             return
+        # every receiver the manifest names has its file, if only a header: one that never
+        # delivered made the whole recording unreadable (a user trial)
+        for i, f in enumerate(self._obs):
+            if f is None:
+                self._open_obs(i, self.start_gpst, {}).flush()
         manifest = Manifest(version=1, name=self.name, scenario=None, seed=None,
                             start_gpst=self.start_gpst,
                             duration_s=max(self.last_gpst - self.start_gpst, 0.0),

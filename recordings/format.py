@@ -852,6 +852,10 @@ def _load_gnss(root: Path, manifest: Manifest, manifest_path: Path, calibration:
             raise RecordingError(f"{path}: no L1 pseudorange or carrier phase in any epoch "
                                  f"(observation types {types or 'none'})")
         times = np.array([e.time for e in epochs])
+        if not len(times):
+            gnss.append(epochs)  # a receiver that delivered nothing (judged with the others)
+            headers.append(obs.header)
+            continue
         d = np.diff(times)
         if (d <= 0).any():
             k = int(np.flatnonzero(d <= 0)[0]) + 1
@@ -861,6 +865,9 @@ def _load_gnss(root: Path, manifest: Manifest, manifest_path: Path, calibration:
         _check_span(path, times, manifest, "L1 observation epochs")
         gnss.append(epochs)
         headers.append(obs.header)
+    if not any(gnss):
+        raise RecordingError(f"{root / obs_files[0]}: no L1 observation epochs (nor in the other "
+                             "receivers' files)")
     return gnss, headers
 
 
@@ -965,6 +972,8 @@ def load(path: str | Path, *, load_gnss: bool = True) -> Recording:
                          "attitude from the baselines it has")
         notes += _early_ends(manifest, {rel: eps[-1].time for rel, eps in
                                         zip(files["gnss_obs"], gnss, strict=True) if eps})
+        notes += [f"{rel}: no epochs (the receiver delivered none; the others' are used)"
+                  for rel, eps in zip(files["gnss_obs"], gnss, strict=True) if not eps]
         nav_path = root / files["gnss_nav"]
         nav = _rinex_call(nav_path, rinex.read_nav, nav_path)
         if not nav.ephemerides:

@@ -135,3 +135,33 @@ def test_a_truncated_file_of_a_finished_recording_is_still_an_error(cut_recordin
         with pytest.raises(RecordingError, match=r"imu\.csv: ends inside a line, the file was "
                                                  r"cut short"):
             check(done)
+
+
+def test_a_receiver_that_never_delivered_leaves_a_readable_recording(sim_recording: Path,
+                                                                     tmp_path: Path):
+    """Receiver 4 connected but silent from the start: its observation file is written with
+    its header alone, so the recording loads (the other receivers' epochs all there) and says
+    the receiver had none. Without it the manifest named a file that did not exist and the
+    whole recording was refused (a second user trial)."""
+    import dataclasses
+
+    from engine.messages import GnssMessage, sensor_messages
+    from live.recorder import LiveRecorder
+    from recordings.format import load, summary
+
+    rec = load(sim_recording)
+    out = tmp_path / "recorded"
+    writer = LiveRecorder(out, name="rx4-silent", calibration=rec.calibration, hull=rec.hull,
+                          origin_llh_deg=tuple(rec.manifest.origin_llh_deg))
+    for msg in sensor_messages(rec):
+        if isinstance(msg, GnssMessage):
+            msg = dataclasses.replace(msg, epochs=(*msg.epochs[:3], None))
+        writer.write(msg, rec.nav)
+    writer.close()
+    got = load(out)
+    assert [len(e) for e in got.gnss[:3]] == [len(e) for e in rec.gnss[:3]]
+    assert len(got.gnss[3]) == 0
+    assert summary(got)["gnss"]["receivers"][3]["epochs"] == 0
+    assert any("rx4.obs: no epochs" in w for w in got.warnings)
+    replayed = [m for m in sensor_messages(got, frames=False) if isinstance(m, GnssMessage)]
+    assert len(replayed) == len(rec.gnss[0]) and all(m.epochs[3] is None for m in replayed)
