@@ -389,6 +389,34 @@ def test_a_live_input_down_is_named_first_on_the_record_chip(browser, server: st
         _close(pg, server)
 
 
+def test_wide_approach_sigmas_fit_the_berth_card_at_1400(browser, server: str) -> None:
+    """An INS fault widens the approach speeds' σ to decimetres a second ("99 cm/s ±53"):
+    at 1400 px the stern's column was pushed out of the berth card (its header read "STE",
+    its σ and direction cut off: a second user trial). Every figure stays inside the card."""
+    pg = _open_page(browser, server, 1400, 900)
+    try:
+        wait_trusted(pg)
+        pause(pg)
+        pg.evaluate("""() => { const f = window.berthing.frame;
+          window.berthing.show({...f, overlay: {...f.overlay, berth: {
+            line_ne: [[0, 0], [10, 0]], method: 'ned', source: 'typed', bow_distance_m: 102.3,
+            stern_distance_m: 125.4, bow_distance_sigma_m: 2.0, stern_distance_sigma_m: 2.1,
+            bow_approach_mps: 0.99, stern_approach_mps: -1.13, bow_approach_sigma_mps: 0.53,
+            stern_approach_sigma_mps: 0.88, along_berth_mps: 0.13, angle_deg: 2.2,
+            angle_sigma_deg: 0.2, time_to_contact_s: 400}}}); }""")
+        card = pg.locator("#stern-speed").locator("xpath=ancestor::section[1]")
+        assert pg.locator("#stern-speed").inner_text().replace("\n", " ") == "▲113cm/s OPENING ±88"
+        cb = card.bounding_box()
+        for sel in ("#bow-speed", "#stern-speed", "#stern-dist", "#bow-dist"):
+            box = pg.locator(sel).bounding_box()
+            assert box is not None and cb is not None
+            assert box["x"] + box["width"] <= cb["x"] + cb["width"] + 1, (sel, box, cb)
+        assert card.evaluate("e => e.scrollWidth <= e.clientWidth"), "the card overflows"
+        shot(pg, "05b_berth_card_wide_sigmas_1400")
+    finally:
+        _close(pg, server)
+
+
 def test_the_rate_of_turn_shows_its_sigma_when_it_matters(page) -> None:
     """A gyro fault widens the rate of turn's σ (``integrity.YawStepCheck``: 0.5°/s, 30°/min):
     the ROT readout says ±30; a usual σ (a few hundredths of a °/s) is not printed."""
@@ -948,6 +976,8 @@ def test_frames_that_stop_coming_grey_the_page_within_a_second(page, server: str
         for fig in ("#hdg", "#sog", "#rot", "#bow-dist"):
             assert page.locator(fig).inner_text().strip() == "–", fig
         assert page.locator("#berth-method").inner_text() == "no new data"
+        for chip in ("#st-phase", "#st-compass", "#st-sats", "#st-vo"):  # of then: not green
+            assert page.locator(chip).get_attribute("data-level") == "stale", chip
         shot(page, "08_frames_stopped")
     finally:
         os.kill(_SERVER_PIDS[server], signal.SIGCONT)

@@ -78,8 +78,10 @@ export class Panel {
     // an INS fault found widens it to decimetres a second)
     const sigmaCms = (berth?.[`${name}_approach_sigma_mps`] ?? 0) * 100;
     const pm = sigmaCms >= 0.5 ? ` ±${sigmaCms.toFixed(0)}` : "";
-    s.innerHTML = `${arrow}${Math.abs(cms).toFixed(0)}<span class="unit">cm/s${pm}</span>`
-      + `<span class="dir">${dir}</span>`;
+    // (the σ on the direction's line: beside the figure it pushed the stern's column off a
+    // 1400 px screen, a user trial)
+    s.innerHTML = `${arrow}${Math.abs(cms).toFixed(0)}<span class="unit">cm/s</span>`
+      + `<span class="dir">${dir}${pm}</span>`;
     s.title = cms > 0 ? "closing the berth line" : "opening from the berth line";
     return level || null;
   }

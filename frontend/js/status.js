@@ -109,7 +109,12 @@ export class Status {
       this._chip("scale", st.scale_converged ? "converged" : "converging",
         st.scale_converged ? "ok" : "warn", st.scale == null ? "" : `VO scale ${st.scale.toFixed(3)}`);
     }
-    if (frozen && st) this._chip("integrity", "no data", "bad", "no new frame from the server");
+    if (frozen && st) {
+      this._chip("integrity", "no data", "bad", "no new frame from the server");
+      // what the others say is of then: not green (a user trial's FUSION "fused", COMPASS
+      // "fixed" stayed green with the link lost)
+      for (const id of ["phase", "compass", "sats", "vo", "scale"]) this.chip(id).dataset.level = "stale";
+    }
     this._notice();
     return this.trust;
   }
