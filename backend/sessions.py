@@ -137,6 +137,8 @@ class Session:
         # The last frame played to clients (or that would have been, unwatched): what a client
         # joining now must see, even while paused.
         self._current_frame: tuple[FrameResult, Any | None, Any | None] | None = None
+        # the engine's status while it has no state (initialising: why, in its own words)
+        self._bare_status: Any | None = None
         self._last_state: Any | None = None  # the fusion's latest, current or not: its status
         self._timing: dict[str, Any] = {}
         self.frame_listeners: list[Callable[[Session, FrameResult], None]] = []
@@ -198,7 +200,9 @@ class Session:
             except Exception:  # the structure is a by-product: never stop the replay for it
                 log.exception("engine.structure(), solved_views() or timing() failed")
         state, pose = self._fused(result.state, result.t)
+        bare = _engine_status(engine) if state is None else None
         with self.lock:
+            self._bare_status = bare
             if structure is not None:
                 self._structure = structure
             self._frames.append((result.index, result.t, result.image))
@@ -372,7 +376,8 @@ class Session:
             "alarms": self.alarms.active(),
             "live": _live_brief(self.live_status()),
         }
-        header["status"] = None if state is None else status_dict(state.status)
+        status = state.status if state is not None else self._bare_status
+        header["status"] = None if status is None else status_dict(status)
         if pose is None:
             header.update(pose=None, overlay=None)
         else:
@@ -426,7 +431,8 @@ class Session:
         with self.lock:
             # the latest status the fusion gave, also when it had no pose for its frame
             latest = self._last_state or self.history.latest()
-            fused = None if latest is None else status_dict(latest.status)
+            status = latest.status if latest is not None else self._bare_status
+            fused = None if status is None else status_dict(status)
             clients = len(self._subscribers)
         target = replay["seek_target_gpst"]
         return {
@@ -806,6 +812,19 @@ def _return_freed_memory() -> None:
     only returns memory that is already free."""
     if _malloc_trim is not None:
         _malloc_trim(0)
+
+
+def _engine_status(engine: FusionEngine) -> Any | None:
+    """The engine's status without a state (``Fusion.status``: initialising, and why; a user
+    trial's page said only "no fused position yet" for 25 s after a live restart)."""
+    status = getattr(engine, "status", None)
+    if not callable(status):
+        return None
+    try:
+        return status()
+    except Exception:  # a by-product: never stop the replay for it
+        log.exception("engine.status() failed")
+        return None
 
 
 def _engine_alerts(engine: FusionEngine) -> tuple[list[Any], list[Any]]:

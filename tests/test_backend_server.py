@@ -171,6 +171,9 @@ def test_stream_overlay_matches_the_pose_of_its_frame(replayed: dict, rec: Recor
     assert len(posed) >= 5, f"{len(frames)} frames, {len(posed)} with a pose"
     times = [f.header["t"] for f in frames]
     assert times == sorted(times)
+    # every frame says what the fusion is doing, also before it has a pose (initialising:
+    # in its own words, "waiting for GNSS", the ephemerides it lacks…)
+    assert all(f.header["status"] and f.header["status"]["message"] for f in frames)
     image = cv2.imdecode(np.frombuffer(frames[-1].jpeg, np.uint8), cv2.IMREAD_COLOR)
     assert image.shape == (600, 960, 3)
     checked = 0
