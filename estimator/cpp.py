@@ -348,6 +348,7 @@ def eta_observations(
 # other receivers' (the same satellites; antennas 10 cm apart differ by centimetres): a step
 # of its own clock or front end, not motion
 RECEIVER_STEP_M = 1.0
+RECEIVER_STEP_SPREAD = 0.05  # ... by the same on its satellites, to this fraction (a clock)
 
 
 def receiver_steps(prev_epochs: Sequence[GnssEpoch | None],
@@ -357,8 +358,9 @@ def receiver_steps(prev_epochs: Sequence[GnssEpoch | None],
     other receivers' on the same satellites (m, the median over their satellites):
     receiver → step. A common clock is the same for all, and the antennas 10 cm apart change
     by centimetres: one receiver's step is its own clock or front end. Needs three receivers
-    on a satellite, so that the others outvote the one that is off. (Every satellite of it
-    is then a "slip" to ``detect_cycle_slips``: this says they are one fault.)"""
+    on a satellite, so that the others outvote the one that is off, and the same step on its
+    satellites (cycle slips move each its own way). (Every satellite of it is then a "slip"
+    to ``detect_cycle_slips``: this says they are one fault.)"""
     by_sat: dict[str, dict[int, float]] = {}
     for i, (prev, curr) in enumerate(zip(prev_epochs, curr_epochs, strict=True)):
         if prev is None or curr is None:
@@ -375,8 +377,17 @@ def receiver_steps(prev_epochs: Sequence[GnssEpoch | None],
         middle = float(np.median(list(seen.values())))  # a good receiver's, or between two
         for i, v in seen.items():
             diffs.setdefault(i, []).append(v - middle)
-    steps = {i: float(np.median(d)) for i, d in diffs.items() if len(d) >= 4}
-    return {i: d for i, d in steps.items() if abs(d) > RECEIVER_STEP_M}
+    out = {}
+    for i, d in diffs.items():
+        if len(d) < 4:
+            continue
+        step = float(np.median(d))
+        # the same on every satellite: a clock; cycle slips (1–30 cycles each, unflagged)
+        # move each satellite its own way (the campaign's cycle-slip fault was named a step)
+        spread = float(np.median(np.abs(np.asarray(d) - step)))
+        if abs(step) > RECEIVER_STEP_M and spread < RECEIVER_STEP_SPREAD * abs(step):
+            out[i] = step
+    return out
 
 
 def velocity_map(rows: Sequence[EtaRow], C_ecef_to_level: np.ndarray, rate_sigma: float,

@@ -673,6 +673,12 @@ def test_one_receivers_clock_step_is_named_and_nothing_else_blamed(sim_recording
     err = run_errors(run, rec.reference, start, start + 3.0)
     after = np.abs(np.degrees(err.heading[run.time - start >= 6.0]))
     assert np.nanmax(after) < 0.3, np.nanmax(after)
+    # every satellite of every receiver slipping its own 1–30 cycles is slips, not a step
+    # (the campaign's cycle-slip fault was named receiver-2-step and receiver-4-step)
+    _rec, _run, slipped = _faulty_run(sim_recording, clean_vo, "cycle-slips:6",
+                                      tmp_path / "slips")
+    kinds = {a.kind for a in slipped.alerts if a.active}
+    assert "cycle-slips" in kinds and not any(k.endswith("-step") for k in kinds), kinds
 
 
 def test_the_compass_is_not_fixed_once_the_receivers_are_silent(sim_recording: Path) -> None:
