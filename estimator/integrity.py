@@ -471,7 +471,7 @@ class YawStep:
 
     step: float  # measured so far: the recent mean still holds samples before the step
     bound: float  # what the hull could have turned by
-    widen: float  # σ to add to the gyro bias now (the bias' σ then covers |step|)
+    widen: float  # σ to add to the gyro bias now (with what was added before, it covers |step|)
     settled: bool  # the recent mean lies after the step: ``step`` is the whole of it
 
 
@@ -508,9 +508,12 @@ class YawStepCheck:
         self._since: float | None = None
         self._last: float | None = None
         self._abs_diff = 0.0  # running mean of |successive difference| (the noise)
-        self._found: YawStep | None = None
-        self._found_before = 0.0  # the mean before the step found
-        self._found_left = 0  # samples until the recent mean lies after it
+        # a step found: the mean before it, the bound it passed, the σ added to the bias so
+        # far (root-sum-square), and the samples until the recent mean lies after it
+        self._found_before: float | None = None
+        self._found_bound = 0.0
+        self._widened = 0.0
+        self._found_left = 0
 
     def update(self, t: float, rate: float, interval: float, speed_mps: float
                ) -> YawStep | None:
@@ -530,7 +533,7 @@ class YawStepCheck:
             self._before.append(self._recent.popleft())
         while len(self._before) > n0:
             self._before.popleft()
-        if self._found is not None:
+        if self._found_before is not None:
             return self._measure()
         if len(self._before) < n0 or t - self._since < self.NOISE_S:
             return None
@@ -543,20 +546,17 @@ class YawStepCheck:
                  + self.K_NOISE * sigma * math.sqrt(1.0 / n1 + 1.0 / n0))
         if abs(step) <= bound:
             return None
-        self._found = YawStep(step, bound, abs(step), False)
-        self._found_before, self._found_left = before, n1 - 1
-        return self._found
+        self._found_before, self._found_bound, self._found_left = before, bound, n1 - 1
+        self._widened = abs(step)
+        return YawStep(step, bound, abs(step), False)
 
     def _measure(self) -> YawStep:
-        found = self._found
-        assert found is not None
+        assert self._found_before is not None
         step = sum(self._recent) / len(self._recent) - self._found_before
-        # the σ added so far is found.widen (root-sum-square): add what covers |step|
-        widen = math.sqrt(max(step**2 - found.widen**2, 0.0))
+        widen = math.sqrt(max(step**2 - self._widened**2, 0.0))  # what covers |step| now
+        self._widened = max(self._widened, abs(step))
         self._found_left -= 1
-        self._found = YawStep(step, found.bound, max(found.widen, abs(step)),
-                              self._found_left <= 0)
-        out = YawStep(step, found.bound, widen, self._found.settled)
+        out = YawStep(step, self._found_bound, widen, self._found_left <= 0)
         if out.settled:
             self.reset()
         return out

@@ -34,7 +34,8 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-from pyubx2 import UBXMessage, UBXReader
+from pyubx2 import VALNONE, UBXMessage, UBXReader
+from pyubx2.ubxhelpers import calc_checksum
 
 from engine.messages import ImuMessage
 from estimator.frames import gpst_from_week_tow
@@ -102,14 +103,6 @@ _LENGTHS = {
 OTHER_MAX_LENGTH = 2048  # (NAV-SAT with 120 satellites: 1448)
 
 
-def _checksum(frame: bytes | bytearray) -> bytes:
-    a = b = 0
-    for c in frame:
-        a = (a + c) & 0xFF
-        b = (b + a) & 0xFF
-    return bytes((a, b))
-
-
 def ubx_frames(stream: ByteStream, on_error: Callable[[Exception], None]) -> Iterator[bytes]:
     """Whole UBX messages (sync to checksum) of a byte stream. A header whose length its
     message cannot have (``_LENGTHS``), or a message whose checksum fails, is noise: the scan
@@ -140,7 +133,7 @@ def ubx_frames(stream: ByteStream, on_error: Callable[[Exception], None]) -> Ite
         if ok:
             if not fill(8 + n):
                 return
-            ok = _checksum(buf[2:6 + n]) == bytes(buf[6 + n:8 + n])
+            ok = calc_checksum(bytes(buf[2:6 + n])) == bytes(buf[6 + n:8 + n])
             if ok:
                 frame = bytes(buf[:8 + n])
                 del buf[:8 + n]
@@ -190,11 +183,10 @@ class RawxDecoder:
             g = lambda name, i=i: getattr(msg, f"{name}_{i:02d}")
             if sat[0] == "R":
                 self.glonass_slots[sat] = int(g("freqId")) - GLONASS_FREQ_ID_OFFSET
-            pr = float(g("prMes")) if g("prValid") else math.nan
-            values = (g("prMes"), g("cpMes"), g("doMes"))
-            if not all(math.isfinite(float(v)) for v in values):
+            if not all(math.isfinite(float(g(name))) for name in ("prMes", "cpMes", "doMes")):
                 self.not_finite += 1  # a corrupt message that still checks out: left out
                 continue
+            pr = float(g("prMes")) if g("prValid") else math.nan
             phase = math.nan
             lli = 0
             if g("cpValid"):
@@ -371,7 +363,7 @@ class UbxGnssSource:
     def __iter__(self) -> Iterator[GnssEpoch | ImuMessage]:
         for raw in ubx_frames(self.stream, self._error):
             try:
-                msg = UBXReader.parse(raw)
+                msg = UBXReader.parse(raw, validate=VALNONE)  # (checked by ubx_frames)
             except Exception as exc:  # noqa: BLE001 - pyubx2's errors vary by version
                 self._error(exc)
                 continue
