@@ -126,7 +126,7 @@ function render() {
   // No new data (the link lost, or no frame for a while): the picture and its overlay stay,
   // frozen and said so, but the figures are of then, not now: none shown (a user trial read
   // a heading 41° off and a berth distance of 55 s before, in the panel's large type).
-  const lost = ["stale", "behind", "reconnecting", "closed"].includes(status.connection);
+  const lost = status.noNewData;
   const figures = lost && f ? { ...f, pose: null, overlay: f.overlay && { ...f.overlay, berth: null, targets: [] } } : f;
   const level = panel.update(figures, app.trust.trusted, lost);
   limits.update(figures?.overlay?.berth);

@@ -35,9 +35,9 @@ export class Panel {
     this.level = null;
   }
 
-  /** @returns {null | "warning" | "alarm"} the approach alarm level shown (none on an
+  /** ``noData``: nothing new from the server (the figures are left out, and said why).
+   *  @returns {null | "warning" | "alarm"} the approach alarm level shown (none on an
    *  untrusted pose: the figures are then greyed, see status.js) */
-  /** ``noData``: nothing new from the server (the figures are left out, and said why). */
   update(frame, trusted = true, noData = false) {
     this.trusted = trusted;
     const pose = frame?.pose;

@@ -3,6 +3,9 @@
 // drawn in grey and a notice over the video says why. Degraded fusion and a provisional VO
 // scale keep the colours but get an amber advisory: the picture is usable, with care.
 
+// Connection states in which nothing new comes from the server: what is shown is of then.
+export const NO_NEW_DATA = ["stale", "behind", "reconnecting", "closed"];
+
 const CONN = {
   idle: ["–", "warn"],
   connecting: ["connecting", "warn"],
@@ -71,6 +74,11 @@ export class Status {
     this.trust = { trusted: false, reasons: ["Waiting for the video stream"], advisories: [] };
   }
 
+  /** Whether nothing new comes from the server (``NO_NEW_DATA``). */
+  get noNewData() {
+    return NO_NEW_DATA.includes(this.connection);
+  }
+
   setConnection(state, detail) {
     this.connection = state;
     this.connectionDetail = detail;
@@ -84,7 +92,7 @@ export class Status {
     const st = frame?.status;
     this.trust = assess(frame);
     // no new frame for a while (or no connection): what is on screen is the past
-    const frozen = ["stale", "behind", "reconnecting", "closed"].includes(this.connection);
+    const frozen = this.noNewData;
     if (frozen) this.trust = { ...this.trust, trusted: false };
     if (!st) {
       for (const id of ["compass", "sats", "vo", "scale"]) this._chip(id, "–", "warn");
