@@ -573,7 +573,7 @@ class Berth:
 
 METRIC_KEYS = ("bow_distance_m", "stern_distance_m", "bow_approach_mps", "stern_approach_mps",
                "bow_distance_sigma_m", "stern_distance_sigma_m", "bow_approach_sigma_mps",
-               "stern_approach_sigma_mps", "along_berth_mps", "angle_deg",
+               "stern_approach_sigma_mps", "along_berth_mps", "along_berth_sigma_mps", "angle_deg",
                "angle_sigma_deg", "time_to_contact_s", "time_to_contact_sigma_s",
                "nearest_distance_m")
 

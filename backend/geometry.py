@@ -78,16 +78,21 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     - along-berth speed: the ship's velocity along the line, positive in the direction the
       bow points along it;
     - angle to the berth: between the centreline and the line (deg, -90..90), positive when
-      the bow is nearer the line than the stern;
+      the bow points towards the line ("bow in"; comparing the bow's distance with the
+      stern's would name it backwards below atan(half beam / length): 4.6° on a 200 m hull,
+      the whole final approach);
     - time to contact: the first hull point to reach the line at its present closing speed
       (None when nothing closes);
     - σ of the bow and stern distance: the line's σ (offset at its middle, direction), the
       fused position's σ across the line and the heading's σ through the point's lever arm;
       σ of the approach speeds: the fused velocity's across the line (millimetres a second
       on the carrier phase; decimetres once an INS fault has been found and the velocity
-      widened) and the rate of turn's through the lever arm; σ of the angle: the line's
-      direction and the heading; σ of the time to contact: the first point's distance σ and
-      closing-speed σ.
+      widened), the rate of turn's through the lever arm, and the line's direction's: a
+      line turned by δ takes δ of the speed along it into the approach (a water-plane line
+      known to 20° makes a third of a 1 m/s slide along the quay look like closing); σ of the
+      along-berth speed: the velocity's along the line and the line's direction's; σ of the
+      angle: the line's direction and the heading; σ of the time to contact: the first
+      point's distance σ and closing-speed σ.
     """
     line = np.asarray(line_ne, dtype=float).reshape(2, 2)
     direction = line[1] - line[0]
@@ -112,6 +117,7 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     vel_var = _plan_variance(getattr(state, "velocity_cov", None), normal)
     yaw_var = _yaw_variance(state)
     rate_var = float(getattr(state, "rate_of_turn_sigma", 0.0) or 0.0) ** 2
+    dir_var = np.radians(line_sigma_deg or 0.0) ** 2  # the line's direction, rad²
 
     def point(body_xy: np.ndarray) -> tuple[float, float, float, float]:
         """distance, closing speed and their σ of a hull point."""
@@ -122,9 +128,11 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
         # rate of turn): a large ship's bow is 160 m out
         d_dpsi = float(np.dot(normal, np.array([-lever[1], lever[0]])))
         var = pos_var + yaw_var * d_dpsi ** 2 + (line_sigma_m or 0.0) ** 2 \
-            + (np.radians(line_sigma_deg or 0.0) * float(np.dot(p - middle, direction))) ** 2
+            + dir_var * float(np.dot(p - middle, direction)) ** 2
+        closing_var = vel_var + rate_var * d_dpsi ** 2 \
+            + dir_var * float(np.dot(v_point, direction)) ** 2
         return float(np.dot(p - line[0], normal)), float(-np.dot(v_point, normal)), \
-            float(np.sqrt(var)), float(np.sqrt(vel_var + rate_var * d_dpsi ** 2))
+            float(np.sqrt(var)), float(np.sqrt(closing_var))
 
     out: dict[str, float | None] = {}
     x = outline_body[:, 0]
@@ -138,10 +146,12 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     heading = R[:, 0]
     along = direction if np.dot(direction, heading) >= 0 else -direction
     out["along_berth_mps"] = float(np.dot(velocity, along))
-    angle = float(np.degrees(np.arcsin(np.clip(abs(np.dot(heading, normal)), 0.0, 1.0))))
-    out["angle_deg"] = angle if out["bow_distance_m"] <= out["stern_distance_m"] else -angle
-    out["angle_sigma_deg"] = float(np.degrees(np.sqrt(yaw_var + np.radians(line_sigma_deg or 0.0)
-                                                      ** 2)))
+    out["along_berth_sigma_mps"] = float(np.sqrt(
+        _plan_variance(getattr(state, "velocity_cov", None), along)
+        + dir_var * float(np.dot(velocity, normal)) ** 2))
+    # the heading's part towards the line (``normal`` points from it to the ship)
+    out["angle_deg"] = float(np.degrees(np.arcsin(np.clip(-np.dot(heading, normal), -1.0, 1.0))))
+    out["angle_sigma_deg"] = float(np.degrees(np.sqrt(yaw_var + dir_var)))
     # time to contact: the whole outline (a shoulder or quarter may touch first)
     dense = densify(outline_body, 0.25)
     levers = dense @ R.T

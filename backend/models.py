@@ -512,12 +512,16 @@ class BerthGeometry(BaseModel):
         None, description="1-σ: the line's, the position's and the heading's")
     stern_distance_sigma_m: float | None = None
     bow_approach_sigma_mps: float | None = Field(
-        None, description="1-σ: the fused velocity's across the line")
+        None, description="1-σ: the fused velocity's across the line, the rate of turn's "
+        "through the lever and the line's direction's")
     stern_approach_sigma_mps: float | None = None
     along_berth_mps: float | None = Field(
         None, description="speed along the line, positive the way the bow points along it")
+    along_berth_sigma_mps: float | None = Field(
+        None, description="1-σ: the fused velocity's along the line and the line's direction's")
     angle_deg: float | None = Field(
-        None, description="between the centreline and the line, positive bow in")
+        None, description="between the centreline and the line, positive when the bow points "
+        "towards it (bow in)")
     angle_sigma_deg: float | None = Field(
         None, description="1-σ: the line's direction and the heading's")
     time_to_contact_s: float | None = Field(

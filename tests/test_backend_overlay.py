@@ -267,6 +267,47 @@ def test_berth_metrics_at_an_angle_take_the_ends_not_midships():
     assert m["time_to_contact_sigma_s"] is None
 
 
+def test_berth_angle_names_where_the_bow_points_even_nearly_parallel():
+    """A user trial: a 200 m ship with her bow turned 4.5–5.2° towards the quay read
+    "stern in" — the sign compared the bow's distance with the nearer stern corner's, which
+    for angles below atan(half beam / length) is nearer whichever way the bow points."""
+    line = np.array([[0.0, -50.0], [0.0, 50.0]])  # the quay along north = 0, ship south of it
+    for deg in (1.0, 3.0, 8.0, 30.0):
+        # heading east (90°), turned towards the quay (north) by deg: heading 90 - deg
+        toward = make_state((-10.0, 0.0, 0.0), (0.0, 0.0, np.radians(90.0 - deg)), (0, 0, 0))
+        away = make_state((-10.0, 0.0, 0.0), (0.0, 0.0, np.radians(90.0 + deg)), (0, 0, 0))
+        assert berth_metrics(toward, HULL, line)["angle_deg"] == pytest.approx(deg, abs=1e-9)
+        assert berth_metrics(away, HULL, line)["angle_deg"] == pytest.approx(-deg, abs=1e-9)
+    # going astern with the bow towards the quay is still bow in
+    astern = make_state((-10.0, 0.0, 0.0), (0.0, 0.0, np.radians(85.0)), (0.0, -0.5, 0.0))
+    assert berth_metrics(astern, HULL, line)["angle_deg"] == pytest.approx(5.0, abs=1e-9)
+
+
+def test_berth_speeds_carry_the_lines_direction_sigma():
+    """A user trial: a berth line on the water plane (direction σ 12–26°) with the boat sliding
+    along it read "▼71 cm/s CLOSING" with no ± (σ 0.2 cm/s) while she closed at 109: a line
+    turned by δ takes δ of the speed along it into the approach. The along-berth speed had no
+    σ at all."""
+    line = np.array([[0.0, -50.0], [0.0, 50.0]])
+    # heading east along the quay at 1 m/s, closing at 0.2 m/s
+    state = make_state((-10.0, 0.0, 0.0), (0.0, 0.0, np.pi / 2), (0.2, 1.0, 0.0))
+    exact = berth_metrics(state, HULL, line)
+    assert exact["bow_approach_sigma_mps"] == pytest.approx(0.0, abs=1e-12)
+    assert exact["along_berth_sigma_mps"] == pytest.approx(0.0, abs=1e-12)
+    m = berth_metrics(state, HULL, line, line_sigma_deg=20.0)
+    sd = np.radians(20.0)
+    assert m["bow_approach_sigma_mps"] == pytest.approx(1.0 * sd, rel=1e-6)
+    assert m["along_berth_sigma_mps"] == pytest.approx(0.2 * sd, rel=1e-6)
+    # and it covers what the line's turn does: the true line 15° off the stated one
+    turned = np.array([[0.0, 0.0], [np.sin(np.radians(15.0)), np.cos(np.radians(15.0))]]) * 50
+    t = berth_metrics(state, HULL, turned)
+    assert abs(t["bow_approach_mps"] - m["bow_approach_mps"]) < 2 * m["bow_approach_sigma_mps"]
+    assert abs(t["along_berth_mps"] - m["along_berth_mps"]) < 2 * m["along_berth_sigma_mps"]
+    # the velocity's own σ along the line
+    state.velocity_cov = np.diag([0.0, 0.03**2, 0.0])
+    assert berth_metrics(state, HULL, line)["along_berth_sigma_mps"] == pytest.approx(0.03)
+
+
 def test_polygon_distance_and_water_plane_point():
     square = np.array([[0.0, 0.0], [0.0, 2.0], [2.0, 2.0], [2.0, 0.0]])
     assert polygon_distance(np.array([1.0, 1.0]), square) == 0.0

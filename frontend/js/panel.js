@@ -94,7 +94,10 @@ export class Panel {
       return;
     }
     const along = berth.along_berth_mps;
-    set("along", along == null ? "–" : `${Math.abs(along * 100).toFixed(0)}<span class="unit">cm/s ${along >= 0 ? "fwd" : "aft"}</span>`);
+    // its σ (the line's direction takes part of the approach into it) as the approach's
+    const alongSigma = (berth.along_berth_sigma_mps ?? 0) * 100;
+    const alongPm = alongSigma >= 0.5 ? ` ±${alongSigma.toFixed(0)}` : "";
+    set("along", along == null ? "–" : `${Math.abs(along * 100).toFixed(0)}<span class="unit">cm/s ${along >= 0 ? "fwd" : "aft"}${alongPm}</span>`);
     const angle = berth.angle_deg;
     const angleSigma = fmtSigmaDeg(berth.angle_sigma_deg);
     set("angle", angle == null ? "–" : `${Math.abs(angle).toFixed(1)}<span class="unit">° ${Math.abs(angle) < 0.5 ? "" : angle > 0 ? "bow in" : "stern in"}${angleSigma}</span>`);
