@@ -155,6 +155,12 @@ class TargetBook:
         except Exception as exc:  # no image tracking: the target keeps its 3-D point, lost
             log.exception("the image tracker of target %s could not start", target.id)
             target.status, target.reason = "lost", f"image tracking unavailable: {exc}"
+            # its distance still has the designation's σ (a click by the image's edge showed
+            # "114 m" with none)
+            rel = target.position_ned - np.asarray(view.position_ned, float)
+            u = rel / max(float(np.linalg.norm(rel)), 1e-9)
+            P = np.asarray(target.designation.covariance, float)
+            target.distance_sigma_m = float(np.sqrt(max(float(u @ P @ u), 0.0)))
             return
         target.tracked_uv, target.score = target.uv, 1.0
         # Its σ from the click on: a frame drawn before the next one is followed shows it too.

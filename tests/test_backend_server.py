@@ -279,6 +279,14 @@ def test_designate_targets_and_berth_line(live: Live, replayed: dict):
         plane = last["overlay"]["video"]["grid"]["plane_down_m"]
         assert water["position_ned"][2] == pytest.approx(plane, abs=1e-4)
         assert 0.5 < water["distance_m"] < 10.0
+        # by the image's edge the tracker's window does not fit: kept, lost, and its distance
+        # still with the designation's σ (a user trial saw "114 m" with none)
+        edge = client.post(f"{base}/targets", json={"u": 3, "v": 560})
+        assert edge.status_code == 201, edge.text
+        edge = edge.json()
+        assert edge["status"] == "lost" and "edge" in edge["reason"]
+        assert edge["distance_sigma_m"] is not None and edge["distance_sigma_m"] > 0.0
+        assert client.delete(f"{base}/targets/{edge['id']}").status_code == 204
         sky = client.post(f"{base}/targets", json={"u": 2, "v": 2})
         assert sky.status_code == 422 and "horizon" in sky.json()["detail"]
         assert client.post(f"{base}/targets", json={"u": 5000, "v": 1}).status_code == 422
