@@ -37,6 +37,10 @@ TARGET_WINDOW_PX = 31  # template side of the image tracker at 960 px of image w
 # What stands on the water up to a quay's top (its face, fenders, moored hulls): a click the
 # port structure does not place may be on any of it, nearer than where its ray meets the water.
 WATER_PLANE_STANDING_M = 3.0
+# Farther than this fraction of focal length x camera height, one pixel of the click moves
+# where its ray meets the water by more than that fraction: no distance to give (a user trial
+# read "796 m ±398" for a quay corner 37 m off, before the structure had points there).
+WATER_PLANE_MAX_PIXEL_FRACTION = 0.1
 
 
 class DesignationError(ValueError):
@@ -120,6 +124,13 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
             "(above the horizon, or the water level is unknown)")
     # 2σ along the ray reaches back to where it is WATER_PLANE_STANDING_M above the water.
     height = float(water_down_m) - float(pose.position_ned[2])  # type: ignore[arg-type]
+    reach = float(np.linalg.norm(hit[:2] - pose.position_ned[:2]))
+    if reach > WATER_PLANE_MAX_PIXEL_FRACTION * focal * height:
+        raise DesignationError(
+            f"pixel ({u:g}, {v:g}) has no port-structure point within "
+            f"{2 * DESIGNATION_RADIUS_PX:g} px, and its ray meets the water {reach:.0f} m off, "
+            f"where one pixel moves it by over {100 * WATER_PLANE_MAX_PIXEL_FRACTION:.0f} %: "
+            "no distance to give there yet")
     fraction = max(0.1, 0.5 * min(WATER_PLANE_STANDING_M, height) / height)
     _, cov = point_on_ray(hit[None], None, pose.position_ned, ray, focal,
                           ray_sigma_fraction=fraction)

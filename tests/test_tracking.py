@@ -730,6 +730,42 @@ def test_water_plane_designation_reaches_what_stands_on_the_water():
         assert sigma >= 0.1 * r_water - 1e-9
 
 
+def test_no_water_plane_distance_where_a_pixel_moves_it_by_metres():
+    """Near the horizon one pixel moves where a ray meets the water by tens of metres: a user
+    trial read "796 m ±398" for a quay corner 37 m off (no structure there yet) and "4662 m"
+    for a fender at 104 m. Beyond a tenth of focal length x camera height the click is
+    refused with the reason; nearer, the water plane gives the distance as before."""
+    from engine.camera import CameraPose, Projector
+    from engine.targets import (
+        WATER_PLANE_MAX_PIXEL_FRACTION,
+        DesignationError,
+        Structure,
+        designate,
+    )
+
+    cam = camera_calibration(SMALL_BOAT)
+    projector = Projector(cam)
+    C_level_to_camera = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # north
+    height = 2.0
+    view = CameraView(0.0, C_level_to_camera, np.array([0.0, 0.0, -height]), None)
+    pose = CameraPose(C_level_to_camera, view.position_ned)
+    limit = WATER_PLANE_MAX_PIXEL_FRACTION * cam.focal_px * height
+    for below_px, refused in ((1.5, True), (8.0, True), (60.0, False)):
+        u, v = 0.5 * cam.width, cam.K[1][2] + below_px  # this far below the horizon
+        ray = projector.pixel_ray(pose, u, v)
+        reach = height / ray[2] * float(np.linalg.norm(ray[:2]))
+        assert (reach > limit) == refused, (below_px, reach, limit)
+        if refused:
+            with pytest.raises(DesignationError, match="one pixel moves it"):
+                designate(projector, view, u, v, Structure(None), 0.0)
+            # one pixel there does move it by more than the fraction
+            lower = projector.pixel_ray(pose, u, v + 1.0)
+            assert reach - height / lower[2] * float(np.linalg.norm(lower[:2])) \
+                > WATER_PLANE_MAX_PIXEL_FRACTION * 0.5 * reach
+        else:
+            assert designate(projector, view, u, v, Structure(None), 0.0).method == "water-plane"
+
+
 def test_a_click_on_a_reflection_is_placed_on_the_water():
     """Calm water mirrors the buildings: their reflections are structure points metres under
     the water (an unseen seed's click there read 94.8 ±17.9 m, 8.4 m under the water, for
