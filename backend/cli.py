@@ -83,6 +83,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
             raise ValueError(f"{name} must be a positive number, got {value!r}")
     integrity = IntegrityConfig(alert_limit_m=args.alert_limit,
                                 heading_alert_limit_deg=args.heading_alert_limit)
+    _port_free(args.host, args.port, "--port")
+    if not args.no_viewer and args.viser_port:
+        _port_free(args.viser_host or args.host, args.viser_port, "--viser-port")
     access, generated = access_for(args.host)
     # The 3-D viewer (viser) has no access control of its own: off loopback it listens on
     # loopback only unless asked.
@@ -111,6 +114,21 @@ def cmd_serve(args: argparse.Namespace) -> int:
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="warning",
                 ws_per_message_deflate=False)
     return 0
+
+
+def _port_free(host: str, port: int, option: str) -> None:
+    """Refuse, before anything starts or is printed, a port another program listens on (a
+    second server printed its address, then died in uvicorn's bind with a thread's FATAL)."""
+    import socket
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise ValueError(f"{option} {port}: cannot listen on {host}:{port} ({exc.strerror}"
+                             "; another berthing-aid serve?)") from None
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -418,6 +419,17 @@ def test_cli_serve_binds_loopback_and_checks_the_recording(tmp_path: Path, capsy
         "127.0.0.1", 8000, 8080, None)
     assert main(["serve", str(tmp_path)]) == 2
     assert "no recording there" in capsys.readouterr().err
+    # a port another program listens on: refused by name before anything starts (a second
+    # server printed its address, then died in the bind with a thread's "FATAL")
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert main(["serve", "--port", str(port), "--no-viewer"]) == 2
+        err = capsys.readouterr()
+        assert f"--port {port}: cannot listen" in err.err and "http://" not in err.out
+        assert main(["serve", "--port", "0", "--viser-port", str(port)]) == 2
+        assert f"--viser-port {port}: cannot listen" in capsys.readouterr().err
 
 
 async def _viser_scene(url: str) -> list[dict]:
