@@ -353,9 +353,12 @@ class Pose(BaseModel):
     velocity_ned: Vec3
     euler_deg: Vec3 = Field(description="roll, pitch, yaw")
     heading_deg: float
+    heading_std_deg: float = Field(description="1-σ of the heading (the attitude's about down)")
     speed_mps: float
     speed_std_mps: float = Field(description="1-σ of the speed over ground")
-    course_deg: float | None
+    course_deg: float | None = Field(description="course over ground; None below 0.05 m/s")
+    course_std_deg: float | None = Field(
+        description="1-σ of the course: the velocity's across the track over the speed")
     rate_of_turn_dps: float
     rate_of_turn_std_dps: float = Field(description="1-σ: the smoothed gyro noise and its bias")
     position_std_m: Vec3 = Field(description="1-σ against the world origin (NED): the filter's "

@@ -204,6 +204,14 @@ def test_pose_history_trajectory_structure_prediction_report(live: Live, replaye
         assert now["status"]["phase"] in ("fused", "degraded", "aligning")
         # the speed carries its σ (the carrier phase's: mm/s), as the position does
         assert 0.0 < now["speed_std_mps"] < 0.05 and len(now["velocity_std_mps"]) == 3
+        # ... and the heading and the course theirs, which cover their errors
+        _pos, vel, euler = live.rec.reference.interpolate(now["gpst"])
+        wrap = lambda a: (a + 180.0) % 360.0 - 180.0  # noqa: E731
+        assert 0.0 < now["heading_std_deg"] < 1.0
+        assert abs(wrap(now["heading_deg"] - np.degrees(euler[2]))) <= 3 * now["heading_std_deg"]
+        assert now["speed_mps"] > 0.05 and 0.0 < now["course_std_deg"] < 5.0
+        true_course = np.degrees(np.arctan2(vel[1], vel[0]))
+        assert abs(wrap(now["course_deg"] - true_course)) <= 3 * now["course_std_deg"] + 0.05
         past = client.get(f"{base}/pose", params={"t": 5.0}).json()
         assert 4.85 <= past["t"] <= 5.0 + 1e-9
         traj = client.get(f"{base}/trajectory").json()

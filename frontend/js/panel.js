@@ -123,7 +123,10 @@ export class Panel {
       for (const id of ["hdg", "sog", "rot", "cog"]) set(id, "–");
       return;
     }
-    set("hdg", `${pose.heading_deg.toFixed(1)}<span class="unit">°</span>`);
+    // σ of heading and course once they reach the digit shown (a slow ship's course is
+    // degrees off: ±σ says so)
+    const degSigma = (x) => (x ?? 0) >= 0.05 ? ` ±${x < 1 ? x.toFixed(1) : x.toFixed(0)}` : "";
+    set("hdg", `${pose.heading_deg.toFixed(1)}<span class="unit">°${degSigma(pose.heading_std_deg)}</span>`);
     set("sog", `${(pose.speed_mps * KNOTS_PER_MPS).toFixed(2)}<span class="unit">kn</span>`
       + ` <span class="unit">${pose.speed_mps.toFixed(2)}${pose.speed_std_mps >= 0.005
         ? ` ±${pose.speed_std_mps.toFixed(2)}` : ""} m/s</span>`);
@@ -134,7 +137,7 @@ export class Panel {
     const rotSigma = (pose.rate_of_turn_std_dps ?? 0) * 60;
     set("rot", `${Math.abs(rot).toFixed(0)}<span class="unit">°/min${side}`
       + `${rotSigma >= 1 ? ` ±${rotSigma.toFixed(0)}` : ""}</span>`);
-    set("cog", pose.course_deg == null ? "–" : `${pose.course_deg.toFixed(1)}<span class="unit">°</span>`);
+    set("cog", pose.course_deg == null ? "–" : `${pose.course_deg.toFixed(1)}<span class="unit">°${degSigma(pose.course_std_deg)}</span>`);
   }
 }
 
