@@ -29,7 +29,7 @@ import numpy as np
 
 from engine.camera import CameraPose, Projector, camera_pose, water_plane_point
 from engine.targets import Structure
-from estimator.landmarks import converged
+from estimator.landmarks import converged, excess_disagreement
 from recordings.format import Recording
 
 from .errors import Unprocessable
@@ -47,6 +47,7 @@ FRONT_DEPTH_M = 1.0  # faces this close behind the nearest one are the same surf
 FACE_GATE_M = 1.5  # a line clicked in plan: fitted to the points this near it
 SECTOR_MARGIN_DEG = 2.0  # the face is fitted between the clicks' directions, widened by this
 MIN_FACE_POINTS = 8  # fewer than this: no face fit (water plane)
+MIN_HALF_POINTS = 3  # a half of a face's points with fewer is not fitted on its own
 ABOVE_WATER_M = 0.1  # structure points at most this far above the water plane are not quay
 MIN_INLIER_GATE_M = 0.15
 CORRELATED_FRACTION = 0.002  # σ of the line shared by all its points, per metre of range
@@ -116,39 +117,75 @@ class FaceFit:
     rms_m: float
 
 
+def _weighted_line(p: np.ndarray, w: np.ndarray) -> FaceFit:
+    """Weighted (``w`` = 1/σ²) total-least-squares line through plan points ``p``: its σ the
+    weighted least-squares σ, scaled up by the scatter when the points lie farther from the
+    line than their σ say."""
+    centre = (w[:, None] * p).sum(axis=0) / w.sum()
+    d = p - centre
+    cov = (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / w.sum()
+    _, vecs = np.linalg.eigh(cov)
+    direction, normal = vecs[:, 1], vecs[:, 0]
+    residual = d @ normal
+    factor = max(1.0, float((w * residual ** 2).sum()) / max(len(p) - 2, 1))
+    along = d @ direction
+    return FaceFit(centre, direction, float(np.sqrt(factor / w.sum())),
+                   float(np.sqrt(factor / max(float((w * along ** 2).sum()), 1e-9))), len(p),
+                   float(np.sqrt(np.mean(residual ** 2))))
+
+
+def _at_centre(half: FaceFit, fit: FaceFit) -> tuple[np.ndarray, np.ndarray]:
+    """A half's line as (offset across ``fit`` at its centre, angle to it) with its 2x2
+    covariance (its offset σ carried from its own centre along its direction σ)."""
+    d = half.direction if half.direction @ fit.direction >= 0 else -half.direction
+    normal = np.array([-fit.direction[1], fit.direction[0]])
+    # where the half's line crosses the normal through the fit's centre
+    t, s = np.linalg.solve(np.column_stack([d, -normal]), fit.centre - half.centre)
+    angle = float(np.arctan2(fit.direction[0] * d[1] - fit.direction[1] * d[0],
+                             fit.direction @ d))
+    a = -t  # the crossing lies t along the half's line from its centre
+    cov = np.array([[half.sigma_m ** 2 + (a * half.sigma_rad) ** 2, a * half.sigma_rad ** 2],
+                    [a * half.sigma_rad ** 2, half.sigma_rad ** 2]])
+    return np.array([s, angle]), cov
+
+
 def fit_line(points_ne: np.ndarray, sigma: np.ndarray) -> FaceFit | None:
     """Weighted (1/σ²) total-least-squares line through plan points, re-fitted without the
     points beyond 3 of their σ (and the fit's scatter) from it; None with fewer than
     MIN_FACE_POINTS. Its σ: the weighted least-squares σ, scaled up by the scatter when the
-    points lie farther from the line than their σ say."""
+    points lie farther from the line than their σ say, and widened by what the lines through
+    either half of the points (along it) disagree beyond their σ (``excess_disagreement``).
+    A straight line through two surfaces (the quay and a boat's side before it) or through
+    points whose errors are alike along a stretch fits each half well and the halves not
+    together: the line's σ then says how far it may be off (a yardstick seed's fit through
+    two such surfaces was 0.5 m off at the bow under a σ of 4 cm)."""
     p = np.asarray(points_ne, dtype=float).reshape(-1, 2)
     sig = np.maximum(np.asarray(sigma, dtype=float), MIN_POINT_SIGMA_M)
     w = 1.0 / sig ** 2
     keep = np.ones(len(p), dtype=bool)
     fit = None
     for _ in range(5):
-        n = int(keep.sum())
-        if n < MIN_FACE_POINTS:
+        if int(keep.sum()) < MIN_FACE_POINTS:
             return None
-        pk, wk = p[keep], w[keep]
-        centre = (wk[:, None] * pk).sum(axis=0) / wk.sum()
-        d = pk - centre
-        cov = (wk[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / wk.sum()
-        _, vecs = np.linalg.eigh(cov)
-        direction, normal = vecs[:, 1], vecs[:, 0]
-        residual = (p - centre) @ normal
-        chi2 = float((wk * residual[keep] ** 2).sum()) / max(n - 2, 1)
-        factor = max(1.0, chi2)
-        along = d @ direction
-        rms = float(np.sqrt(np.mean(residual[keep] ** 2)))
-        fit = FaceFit(centre, direction, float(np.sqrt(factor / wk.sum())),
-                      float(np.sqrt(factor / max(float((wk * along ** 2).sum()), 1e-9))), n, rms)
+        fit = _weighted_line(p[keep], w[keep])
+        residual = (p - fit.centre) @ np.array([-fit.direction[1], fit.direction[0]])
+        factor = (fit.sigma_m ** 2 * w[keep].sum())  # the scatter's scale (≥ 1)
         new = np.abs(residual) <= np.maximum(3.0 * np.sqrt(sig ** 2 * factor),
                                              MIN_INLIER_GATE_M)
         if (new == keep).all():
             break
         keep = new
-    return fit
+    assert fit is not None
+    pk, wk = p[keep], w[keep]
+    along = (pk - fit.centre) @ fit.direction
+    first = along < float(np.median(along))
+    if min(int(first.sum()), int((~first).sum())) < MIN_HALF_POINTS:
+        return fit
+    x_a, P_a = _at_centre(_weighted_line(pk[first], wk[first]), fit)
+    x_b, P_b = _at_centre(_weighted_line(pk[~first], wk[~first]), fit)
+    extra = excess_disagreement(x_a, P_a, x_b, P_b)
+    return replace(fit, sigma_m=float(np.sqrt(fit.sigma_m ** 2 + extra[0, 0])),
+                   sigma_rad=float(np.sqrt(fit.sigma_rad ** 2 + extra[1, 1])))
 
 
 def _azimuth(v: np.ndarray) -> np.ndarray:
@@ -239,12 +276,7 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
                                 blockers)
     if not shown[0]:
         return None  # the re-fit swung to where the clicks cannot be on it
-    # the points' errors are not independent (one VO scale, the poses they were triangulated
-    # from): a σ proportional to the range stands for what they share
-    shared = CORRELATED_FRACTION * float(np.linalg.norm(fit.centre - cam[:2]))
-    return BerthLine(np.array(ends), "image", method="quay-face",
-                     sigma_m=float(np.hypot(fit.sigma_m, shared)),
-                     sigma_deg=float(np.degrees(fit.sigma_rad)), support=fit.support)
+    return _face_line(fit, np.array(ends), "image", cam)
 
 
 def water_range(projector: Projector, cam: np.ndarray, ray: np.ndarray,
@@ -406,9 +438,21 @@ def snap_to_face(line_ne: np.ndarray, structure: Structure, water_down_m: float 
         return None
     ends = [fit.centre + float(np.dot(p - fit.centre, fit.direction)) * fit.direction
             for p in (a, b)]
-    shared = CORRELATED_FRACTION * float(np.linalg.norm(fit.centre - np.asarray(camera_ned)[:2]))
-    return BerthLine(np.array(ends), "ned", method="quay-face",
-                     sigma_m=float(np.hypot(fit.sigma_m, shared)),
+    return _face_line(fit, np.array(ends), "ned", np.asarray(camera_ned, dtype=float))
+
+
+def _face_line(fit: FaceFit, ends: np.ndarray, source: str, camera_ned: np.ndarray
+               ) -> BerthLine:
+    """The berth line between ``ends`` on a fitted face, with the σ of its offset at its
+    middle (``BerthLine.sigma_m``; the fit's is at the points' centre, which may lie tens of
+    metres along) and of its direction."""
+    # the points' errors are not independent (one VO scale, the poses they were triangulated
+    # from): a σ proportional to the range stands for what they share
+    shared = CORRELATED_FRACTION * float(np.linalg.norm(fit.centre - camera_ned[:2]))
+    along = float((ends.mean(axis=0) - fit.centre) @ fit.direction)
+    return BerthLine(ends, source, method="quay-face",
+                     sigma_m=float(np.sqrt(fit.sigma_m ** 2 + (fit.sigma_rad * along) ** 2
+                                           + shared ** 2)),
                      sigma_deg=float(np.degrees(fit.sigma_rad)), support=fit.support)
 
 

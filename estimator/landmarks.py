@@ -306,15 +306,15 @@ def common_drift_jacobian(C_level_to_camera: np.ndarray, camera_position_ned: np
 
 def excess_disagreement(x_a: np.ndarray, P_a: np.ndarray, x_b: np.ndarray, P_b: np.ndarray
                         ) -> np.ndarray:
-    """(3,3): the part of two estimates' disagreement their covariances do not explain,
+    """(n,n): the part of two estimates' disagreement their covariances do not explain,
     along the line between them — ``max(0, |d|² − uᵀ(P_a + P_b)u) u uᵀ`` with ``d = x_a −
     x_b``, ``u = d/|d|`` (a method-of-moments estimate of the error neither covariance
     knows). Zero when they agree within their σ. Two halves of one track's views that
     disagree so show an error common to each half's views: a slid template."""
-    d = np.asarray(x_a, float).reshape(3) - np.asarray(x_b, float).reshape(3)
+    d = np.asarray(x_a, float).reshape(-1) - np.asarray(x_b, float).reshape(-1)
     n = float(np.linalg.norm(d))
     if not np.isfinite(n) or n == 0.0:
-        return np.zeros((3, 3))
+        return np.zeros((len(d), len(d)))
     u = d / n
     extra = n * n - float(u @ (np.asarray(P_a, float) + np.asarray(P_b, float)) @ u)
     return max(extra, 0.0) * np.outer(u, u)

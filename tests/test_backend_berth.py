@@ -191,6 +191,31 @@ def test_a_boat_side_between_the_clicks_is_not_taken_for_the_quay():
         assert error <= 2.0 * status["bow_distance_sigma_m"], (slip, status)
 
 
+def test_a_face_fitted_across_two_surfaces_says_how_far_off_it_may_be():
+    """The quay (north = 0) on one side and a moored boat's side 2 m before it on the other,
+    both in the fit's gate: one straight line through both is tilted and 1 m off at their
+    middle, and the points (σ 0.2 m each, 40 of them) made its σ a few centimetres (yardstick
+    seeds: 14 lines 0.2–1.1 m off under σ of 4–16 cm). The halves' lines disagree: the σ now
+    covers where the quay is; on one straight face it stays the points' σ over their count."""
+    from backend.berth import fit_line
+
+    rng = np.random.default_rng(7)
+    quay = np.column_stack([rng.normal(0.0, 0.05, 20), np.linspace(-20.0, -10.0, 20)])
+    boat = np.column_stack([rng.normal(-2.0, 0.05, 20), np.linspace(-4.0, 6.0, 20)])
+    both = fit_line(np.vstack([quay, boat]), np.full(40, 0.2))
+    assert both is not None
+    normal = np.array([-both.direction[1], both.direction[0]])
+    for east in (-15.0, 0.0, 1.0):  # the berth line's middle, the bow beside the boat
+        true_offset = abs(float((np.array([0.0, east]) - both.centre) @ normal))
+        along = float((np.array([0.0, east]) - both.centre) @ both.direction)
+        sigma = float(np.hypot(both.sigma_m, both.sigma_rad * along))
+        assert true_offset <= 2.0 * sigma, (east, true_offset, sigma)
+        if east > 0.0:  # beside the boat the line is the boat's, not the quay's
+            assert true_offset > 1.0
+    one = fit_line(np.vstack([quay, quay + [0.0, 12.0]]), np.full(40, 0.2))
+    assert one is not None and one.sigma_m < 0.1 and np.degrees(one.sigma_rad) < 0.5
+
+
 def test_plan_clicks_snap_to_the_quay_face():
     state = make_state()
     berth = _berth()
