@@ -171,13 +171,19 @@ class _HeadingEpoch:
     heading_var_sd: float  # its heading's variance (rad²)
     C_gyro: np.ndarray  # ``Ins.C_gyro`` then
     bias_var: float  # the EKF's gyro bias variance then ((rad/s)², largest axis)
+    bias_turn: float = 0.0  # ``Ins.bias_turn`` then (rad)
+    bias_yaw_rate: float = 0.0  # ``Ins.bias_yaw_rate`` then (rad/s)
 
 
 def _heading_off(old: _HeadingEpoch, new: _HeadingEpoch) -> float:
     """The rotation from ``old`` to ``new`` by the single differences less the gyro's, in
-    level axes at the start (where the attitudes' errors are stated): its down component."""
+    level axes at the start (where the attitudes' errors are stated): its down component.
+    The gyro's with its bias held at ``old``'s estimate: the EKF's estimates since (of a bias
+    step it is learning) are given back. Without that, the faster the VO's check had the EKF
+    learn a 1°/s step, the less of it this check saw: it never named the gyro."""
+    learned = new.bias_turn - old.bias_turn - old.bias_yaw_rate * (new.t - old.t)
     return float((old.C_sd @ dcm_to_rotvec((old.C_sd.T @ new.C_sd)
-                                           @ (old.C_gyro.T @ new.C_gyro).T))[2])
+                                           @ (old.C_gyro.T @ new.C_gyro).T))[2]) - learned
 
 
 class GyroCheck:
@@ -514,7 +520,8 @@ class CarrierPhaseCoupling:
         the EKF the new bias within seconds; cleared once the longest window agrees."""
         bias_var = float(np.linalg.eigvalsh(ekf.covariance(ekf.ix.BG))[-1])
         found = self.gyro.check(_HeadingEpoch(ekf.time, C_sd, float(P_sd[2, 2]),
-                                              ekf.ins.C_gyro.copy(), bias_var),
+                                              ekf.ins.C_gyro.copy(), bias_var,
+                                              ekf.ins.bias_turn, ekf.ins.bias_yaw_rate),
                                 measured=not self.monitor.imu_bridged())
         if found is None:
             if self.monitor.is_active("gyro") \

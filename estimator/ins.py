@@ -167,6 +167,11 @@ class Ins:
         # its rotations over seconds check the VO's (``vo_coupling.VoConsistency``) without
         # the corrections the VO itself feeds in.
         self.C_gyro = self._state.C_body_to_level.copy()
+        # The turn about the level down axis the EKF's gyro bias estimates took out of it (rad):
+        # with it a window's rotation is had with the bias held as it was at its start, which
+        # the EKF learning a bias step (from the VO, the single differences) must not hide
+        # (``carrier_phase.GyroCheck``).
+        self.bias_turn = 0.0
 
     @property
     def state(self) -> InsState:
@@ -176,6 +181,13 @@ class Ins:
         """A raw gyro sample's rate about the level down axis (rad/s), its bias not removed
         (scale factor and misalignment are)."""
         return float(self._state.C_body_to_level[2] @ (self.gyro_correction @ gyro))
+
+    @property
+    def bias_yaw_rate(self) -> float:
+        """The EKF's gyro bias estimate about the level down axis (rad/s), as it is taken out
+        of the samples (``calibrate``)."""
+        s = self._state
+        return float(s.C_body_to_level[2] @ (self.gyro_correction @ s.gyro_bias))
 
     @property
     def horizontal_speed(self) -> float:
@@ -253,6 +265,7 @@ class Ins:
         earth_dcm, dC = self._earth_rotation(dt), rotvec_to_dcm(w_coning * dt)
         C1 = earth_dcm @ C0 @ dC
         self.C_gyro = earth_dcm @ self.C_gyro @ dC
+        self.bias_turn += self.bias_yaw_rate * dt
         self._steps += 1
         if self._steps % _ORTHONORMALIZE_EVERY == 0:
             C1 = orthonormalize(C1)

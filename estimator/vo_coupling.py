@@ -44,8 +44,11 @@ VO_START_BASELINE = 0.3  # VO units moved since the anchor frame before a segmen
 VO_START_METRES = 0.3  # ... and metres (a sensible first scale from the INS)
 VO_START_SCALE_SIGMA = 0.3  # relative σ of that first scale
 # The VO is compared with the gyro and the fused track over these spans: a fast runaway shows
-# in the short one, a slow steady one in the long one.
-VO_CHECK_WINDOWS_S = (1.0, 2.0, 5.0)
+# in the short one, a slow steady one in the long one. A gyro bias step of b is seen over a
+# window T once b T passes the gate of the VO model's rotation drift (~0.12°/√s): T ≈ 0.3 s
+# for 1°/s, which the 1 s window saw only after 0.6 s (the rate of turn wrong under a tight σ
+# meanwhile); the YawStepCheck finds steps a hull cannot make at once.
+VO_CHECK_WINDOWS_S = (0.3, 1.0, 2.0, 5.0)
 MIN_TRAVEL_M = 1.0  # the direction of travel is checked over windows with this much of it
 # A VO found inconsistent may have pulled the fused attitude by as much as it disagrees, but
 # no more than this (a direction of travel tens of degrees off moves the heading degrees).
@@ -250,7 +253,7 @@ class VoCoupling:
         if bad is not None:
             judge = "the gyro" if bad.what == "rotation" else "the fused track"
             off = (f"VO {bad.what} {math.degrees(bad.angle_rad):.1f}° off {judge} over "
-                   f"{bad.window_s:.0f} s")
+                   f"{bad.window_s:.1g} s")
             if not self.excluded:
                 # What it may have pulled the attitude by: widen the attitude σ so much. A
                 # rotation the gyro disagrees with may be the gyro's fault (a bias step) as

@@ -414,7 +414,8 @@ def test_a_gyro_bias_the_vo_sees_first_is_declared_as_the_gyros(sim_recording: P
     the VO). The gyro's turn over seconds against the single differences' heading
     (``carrier_phase.GyroCheck``) says it is the gyro: declared within 2 s, and the heading
     never beyond its protection level while trusted."""
-    _rec, _run, ig = _faulty_run(sim_recording, clean_vo, "gyro-bias:6:1", tmp_path)
+    rec, run, ig = _faulty_run(sim_recording, clean_vo, "gyro-bias:6:1", tmp_path)
+    start = rec.manifest.start_gpst
     gyro = [a for a in ig.alerts if a.kind == "gyro" and a.active]
     assert gyro and 6.0 < gyro[0].t <= 8.0 + 1e-6, ig.alerts
     assert "gyro" in gyro[0].message and "carrier-phase heading" in gyro[0].message
@@ -422,6 +423,21 @@ def test_a_gyro_bias_the_vo_sees_first_is_declared_as_the_gyros(sim_recording: P
     # is taken back as the gyro is found off (it holds the heading while the bias is learned)
     assert all("off the gyro" in a.message for a in ig.alerts
                if a.kind == "vo-inconsistent" and "rotation" in a.message), ig.alerts
+    # ... within 0.4 s of the step (its 0.3 s window; the 1 s window needed 0.6 s, the rate
+    # of turn 1°/s off under a σ of 0.03°/s meanwhile), and the rate of turn's σ then covers
+    # its error
+    seen = [a for a in ig.alerts if a.kind == "vo-inconsistent" and a.active]
+    assert seen and 6.0 < seen[0].t <= 6.4 + 1e-6, ig.alerts
+    _pos, _vel, euler = rec.reference.interpolate(run.time)
+    true_rate = np.gradient(np.unwrap(euler[:, 2]), run.time)
+    checked = 0
+    for k, s in enumerate(run.states):
+        if s is not None and seen[0].t + start <= run.time[k] <= gyro[0].t + start + 2.0:
+            err = abs(s.rate_of_turn - true_rate[k])
+            assert err <= 3.0 * s.rate_of_turn_sigma, (run.time[k] - start, math.degrees(err),
+                                                       math.degrees(s.rate_of_turn_sigma))
+            checked += 1
+    assert checked > 20
     back = [a for a in ig.alerts if a.kind == "vo-inconsistent" and not a.active]
     assert back and back[0].t == pytest.approx(gyro[0].t) and "gyro was off" in back[0].message
     assert ig.misleading_heading_epochs == 0 and ig.misleading_epochs == 0, ig
