@@ -143,9 +143,9 @@ def _at_centre(half: FaceFit, fit: FaceFit) -> tuple[np.ndarray, np.ndarray]:
     t, s = np.linalg.solve(np.column_stack([d, -normal]), fit.centre - half.centre)
     angle = float(np.arctan2(fit.direction[0] * d[1] - fit.direction[1] * d[0],
                              fit.direction @ d))
-    a = -t  # the crossing lies t along the half's line from its centre
-    cov = np.array([[half.sigma_m ** 2 + (a * half.sigma_rad) ** 2, a * half.sigma_rad ** 2],
-                    [a * half.sigma_rad ** 2, half.sigma_rad ** 2]])
+    # the crossing lies t along the half's line from its centre: turned by δ, it moves t δ
+    cov = np.array([[half.sigma_m ** 2 + (t * half.sigma_rad) ** 2, t * half.sigma_rad ** 2],
+                    [t * half.sigma_rad ** 2, half.sigma_rad ** 2]])
     return np.array([s, angle]), cov
 
 

@@ -216,6 +216,29 @@ def test_a_face_fitted_across_two_surfaces_says_how_far_off_it_may_be():
     assert one is not None and one.sigma_m < 0.1 and np.degrees(one.sigma_rad) < 0.5
 
 
+def test_the_halves_of_one_straight_face_disagree_as_their_sigma_say():
+    """On points of one straight face (their σ 5–50 cm, as stated) the halves' lines differ
+    by what their covariances say (χ² of 2 degrees of freedom): the widening is for faces
+    that are not one line, not a tax on every fit. Their offsets are compared at one point,
+    each carried there along its direction's σ (a sign slip there read 4.1 for 2)."""
+    from backend.berth import _at_centre, _weighted_line
+
+    rng = np.random.default_rng(3)
+    chi2 = []
+    for _ in range(500):
+        east = np.sort(rng.uniform(-20.0, 30.0, 30))
+        sig = rng.uniform(0.05, 0.5, 30)
+        p = np.column_stack([rng.normal(0.0, sig), east])
+        w = 1.0 / sig**2
+        fit = _weighted_line(p, w)
+        first = (p - fit.centre) @ fit.direction < np.median((p - fit.centre) @ fit.direction)
+        x_a, P_a = _at_centre(_weighted_line(p[first], w[first]), fit)
+        x_b, P_b = _at_centre(_weighted_line(p[~first], w[~first]), fit)
+        d = x_a - x_b
+        chi2.append(float(d @ np.linalg.solve(P_a + P_b, d)))
+    assert 1.4 < np.mean(chi2) < 2.4 and np.mean(np.array(chi2) > 5.99) < 0.08
+
+
 def test_plan_clicks_snap_to_the_quay_face():
     state = make_state()
     berth = _berth()
