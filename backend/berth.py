@@ -114,7 +114,7 @@ class FaceFit:
     sigma_m: float  # σ of the offset at the centre
     sigma_rad: float  # σ of the direction
     support: int
-    rms_m: float
+    scatter: float  # χ² per degree of freedom, at least 1: how far beyond their σ the points lie
 
 
 def _weighted_line(p: np.ndarray, w: np.ndarray) -> FaceFit:
@@ -131,7 +131,7 @@ def _weighted_line(p: np.ndarray, w: np.ndarray) -> FaceFit:
     along = d @ direction
     return FaceFit(centre, direction, float(np.sqrt(factor / w.sum())),
                    float(np.sqrt(factor / max(float((w * along ** 2).sum()), 1e-9))), len(p),
-                   float(np.sqrt(np.mean(residual ** 2))))
+                   factor)
 
 
 def _at_centre(half: FaceFit, fit: FaceFit) -> tuple[np.ndarray, np.ndarray]:
@@ -169,8 +169,7 @@ def fit_line(points_ne: np.ndarray, sigma: np.ndarray) -> FaceFit | None:
             return None
         fit = _weighted_line(p[keep], w[keep])
         residual = (p - fit.centre) @ np.array([-fit.direction[1], fit.direction[0]])
-        factor = (fit.sigma_m ** 2 * w[keep].sum())  # the scatter's scale (≥ 1)
-        new = np.abs(residual) <= np.maximum(3.0 * np.sqrt(sig ** 2 * factor),
+        new = np.abs(residual) <= np.maximum(3.0 * np.sqrt(sig ** 2 * fit.scatter),
                                              MIN_INLIER_GATE_M)
         if (new == keep).all():
             break

@@ -114,7 +114,8 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     # (``BerthLine.drift_since``)
     pos_var = _plan_variance(getattr(state, "position_cov", None), normal) \
         + _plan_variance(drift_cov, normal)
-    vel_var = _plan_variance(getattr(state, "velocity_cov", None), normal)
+    vel_cov = getattr(state, "velocity_cov", None)
+    vel_var = _plan_variance(vel_cov, normal)
     yaw_var = _yaw_variance(state)
     rate_var = float(getattr(state, "rate_of_turn_sigma", 0.0) or 0.0) ** 2
     dir_var = np.radians(line_sigma_deg or 0.0) ** 2  # the line's direction, rad²
@@ -147,7 +148,7 @@ def berth_metrics(state: Any, hull: Hull, line_ne: np.ndarray,
     along = direction if np.dot(direction, heading) >= 0 else -direction
     out["along_berth_mps"] = float(np.dot(velocity, along))
     out["along_berth_sigma_mps"] = float(np.sqrt(
-        _plan_variance(getattr(state, "velocity_cov", None), along)
+        _plan_variance(vel_cov, along)
         + dir_var * float(np.dot(velocity, normal)) ** 2))
     # the heading's part towards the line (``normal`` points from it to the ship)
     out["angle_deg"] = float(np.degrees(np.arcsin(np.clip(-np.dot(heading, normal), -1.0, 1.0))))

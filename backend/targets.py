@@ -24,6 +24,7 @@ from engine.targets import (
     camera_view,
     designate,
 )
+from estimator.tracking import range_with_sigma
 from recordings.format import Recording
 
 from .errors import Conflict, NotFound, Unprocessable
@@ -157,10 +158,8 @@ class TargetBook:
             target.status, target.reason = "lost", f"image tracking unavailable: {exc}"
             # its distance still has the designation's σ (a click by the image's edge showed
             # "114 m" with none)
-            rel = target.position_ned - np.asarray(view.position_ned, float)
-            u = rel / max(float(np.linalg.norm(rel)), 1e-9)
-            P = np.asarray(target.designation.covariance, float)
-            target.distance_sigma_m = float(np.sqrt(max(float(u @ P @ u), 0.0)))
+            target.distance_sigma_m = range_with_sigma(
+                target.position_ned, target.designation.covariance, view.position_ned)[1]
             return
         target.tracked_uv, target.score = target.uv, 1.0
         # Its σ from the click on: a frame drawn before the next one is followed shows it too.

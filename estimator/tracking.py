@@ -816,6 +816,16 @@ class _SeenViews:
         return np.isfinite(self.rotation_var)
 
 
+def range_with_sigma(point_ned: np.ndarray, covariance: np.ndarray, camera_ned: np.ndarray
+                     ) -> tuple[float, float]:
+    """Distance (m) from a camera centre to a 3-D point, and its 1-σ from the point's
+    covariance along the line of sight."""
+    rel = np.asarray(point_ned, float) - np.asarray(camera_ned, float)
+    d = float(np.linalg.norm(rel))
+    u = rel / max(d, 1e-9)
+    return d, float(np.sqrt(max(float(u @ np.asarray(covariance, float) @ u), 0.0)))
+
+
 class DesignatedTarget:
     """A clicked point: its image track (``TargetTracker``) and its 3-D point, one landmark
     EKF (``estimator.landmarks``) fed with every tracked view and the fused camera pose. The
@@ -919,12 +929,8 @@ class DesignatedTarget:
                  ) -> tuple[float, float]:
         """Distance (m) from the camera of ``view`` to the 3-D point, and its 1-σ (from
         ``reported``, the ``reported_covariance`` at ``view`` when already formed)."""
-        X = self.position_ned
         P = self.reported_covariance(view) if reported is None else reported
-        c = np.asarray(view.position_ned, float)
-        d = float(np.linalg.norm(X - c))
-        u = (X - c) / max(d, 1e-9)
-        return d, float(np.sqrt(max(u @ P @ u, 0.0)))
+        return range_with_sigma(self.position_ned, P, view.position_ned)
 
     def project(self, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
                 point: np.ndarray | None = None) -> np.ndarray | None:

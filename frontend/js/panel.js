@@ -13,8 +13,15 @@ function fmtSigma(s) {
   return s == null ? "" : `±${s.toFixed(s < 0.095 ? 2 : 1)}`;
 }
 
-function fmtSigmaDeg(s) {
-  return s == null ? "" : ` ±${s.toFixed(s < 0.95 ? 1 : 0)}°`;
+/** " ±0.3°", or nothing below ``min`` (a σ under the digit shown says nothing). */
+function fmtSigmaDeg(s, min = 0) {
+  return s == null || s < min ? "" : ` ±${s.toFixed(s < 0.95 ? 1 : 0)}°`;
+}
+
+/** A speed's σ in cm/s, " ±24", once it reaches the digit shown (0.5 cm/s). */
+function fmtSigmaCms(mps) {
+  const cms = (mps ?? 0) * 100;
+  return cms >= 0.5 ? ` ±${cms.toFixed(0)}` : "";
 }
 
 function fmtSigmaTime(s) {
@@ -76,8 +83,7 @@ export class Panel {
     const dir = Math.abs(cms) < 0.5 ? "steady" : cms > 0 ? "closing" : "opening";
     // its σ once it reaches the figure's last digit (the carrier phase holds it to mm/s;
     // an INS fault found widens it to decimetres a second)
-    const sigmaCms = (berth?.[`${name}_approach_sigma_mps`] ?? 0) * 100;
-    const pm = sigmaCms >= 0.5 ? ` ±${sigmaCms.toFixed(0)}` : "";
+    const pm = fmtSigmaCms(berth?.[`${name}_approach_sigma_mps`]);
     // (the σ on the direction's line: beside the figure it pushed the stern's column off a
     // 1400 px screen, a user trial)
     s.innerHTML = `${arrow}${Math.abs(cms).toFixed(0)}<span class="unit">cm/s</span>`
@@ -94,10 +100,7 @@ export class Panel {
       return;
     }
     const along = berth.along_berth_mps;
-    // its σ (the line's direction takes part of the approach into it) as the approach's
-    const alongSigma = (berth.along_berth_sigma_mps ?? 0) * 100;
-    const alongPm = alongSigma >= 0.5 ? ` ±${alongSigma.toFixed(0)}` : "";
-    set("along", along == null ? "–" : `${Math.abs(along * 100).toFixed(0)}<span class="unit">cm/s ${along >= 0 ? "fwd" : "aft"}${alongPm}</span>`);
+    set("along", along == null ? "–" : `${Math.abs(along * 100).toFixed(0)}<span class="unit">cm/s ${along >= 0 ? "fwd" : "aft"}${fmtSigmaCms(berth.along_berth_sigma_mps)}</span>`);
     const angle = berth.angle_deg;
     const angleSigma = fmtSigmaDeg(berth.angle_sigma_deg);
     set("angle", angle == null ? "–" : `${Math.abs(angle).toFixed(1)}<span class="unit">° ${Math.abs(angle) < 0.5 ? "" : angle > 0 ? "bow in" : "stern in"}${angleSigma}</span>`);
@@ -125,8 +128,7 @@ export class Panel {
     }
     // σ of heading and course once they reach the digit shown (a slow ship's course is
     // degrees off: ±σ says so)
-    const degSigma = (x) => (x ?? 0) >= 0.05 ? ` ±${x < 1 ? x.toFixed(1) : x.toFixed(0)}` : "";
-    set("hdg", `${pose.heading_deg.toFixed(1)}<span class="unit">°${degSigma(pose.heading_std_deg)}</span>`);
+    set("hdg", `${pose.heading_deg.toFixed(1)}<span class="unit">°${fmtSigmaDeg(pose.heading_std_deg, 0.05)}</span>`);
     set("sog", `${(pose.speed_mps * KNOTS_PER_MPS).toFixed(2)}<span class="unit">kn</span>`
       + ` <span class="unit">${pose.speed_mps.toFixed(2)}${pose.speed_std_mps >= 0.005
         ? ` ±${pose.speed_std_mps.toFixed(2)}` : ""} m/s</span>`);
@@ -137,7 +139,7 @@ export class Panel {
     const rotSigma = (pose.rate_of_turn_std_dps ?? 0) * 60;
     set("rot", `${Math.abs(rot).toFixed(0)}<span class="unit">°/min${side}`
       + `${rotSigma >= 1 ? ` ±${rotSigma.toFixed(0)}` : ""}</span>`);
-    set("cog", pose.course_deg == null ? "–" : `${pose.course_deg.toFixed(1)}<span class="unit">°${degSigma(pose.course_std_deg)}</span>`);
+    set("cog", pose.course_deg == null ? "–" : `${pose.course_deg.toFixed(1)}<span class="unit">°${fmtSigmaDeg(pose.course_std_deg, 0.05)}</span>`);
   }
 }
 
