@@ -6,7 +6,8 @@ State (error = estimate − truth everywhere, as in ``estimator.ins``)::
     x = [x_r, x_v, x_e, x_ω, x_a | x_D, x_Z | x_θ, x_S, x_d | x_r⁻, x_e⁻]
 
 - INS block (15): position, velocity, attitude (small angle in L, Ĉ = (I + [x_e×]) C), gyro and
-  accel bias errors (raw sensor axes), time update of ``ins.error_state_transition``;
+  accel bias errors (raw sensor axes), time update of ``ins.error_state_transition`` (the
+  bias errors as random walks: ``EkfConfig.gyro_bias_sigma``);
 - CPP block: ``x_D`` (3) the errors of the inter-receiver delays δ_j = D_1j = d_1 − d_j of
   receivers 2..4 relative to receiver 1 (so D_ij = δ_j − δ_i, δ_1 ≡ 0), ``x_Z`` the clock drift
   (m/s) — ONE state for the common clock or one per receiver (``common_clock=False``);
@@ -107,9 +108,15 @@ class EkfConfig:
 
     gyro_arw: float = 0.2 * _DEG / 60.0  # rad/√s
     accel_vrw: float = 0.08 / 60.0  # m/s/√s
-    gyro_bias_sigma: float = 15.0 * _DEG / 3600.0  # rad/s, Gauss–Markov steady state
+    # A MEMS bias is a turn-on constant (the init_* σ below) plus a slow Gauss–Markov
+    # instability (σ, τ). The error of the constant does not fade by itself, so the bias
+    # errors are random walks with the instability's density 2σ²/τ, not the thesis'
+    # Gauss–Markov F = −1/τ: that let P forget the turn-on σ in a few τ without a measurement
+    # (0.25 → 0.17 m/s² in 114 s), and the tilt tied to the accelerometer bias followed: a
+    # large ship's pitch 0.5° off under σ 0.11° (seed 204, 4.6σ; 3.9σ as random walks).
+    gyro_bias_sigma: float = 15.0 * _DEG / 3600.0  # rad/s, instability
     gyro_bias_tau: float = 300.0  # s
-    accel_bias_sigma: float = 0.3e-3 * 9.80665  # m/s²
+    accel_bias_sigma: float = 0.3e-3 * 9.80665  # m/s², instability
     accel_bias_tau: float = 300.0  # s
     delay_sigma: float = 0.005  # m, Gauss–Markov steady state of δ
     delay_tau: float = 3600.0
@@ -342,7 +349,7 @@ class ErrorStateEkf:
         C = self.nominal.C_body_to_level
         Phi = np.eye(ix.n)
         Phi[ix.INS, ix.INS] = error_state_transition(
-            dt, C, f_mean, ins.origin_llh, cfg.gyro_bias_tau, cfg.accel_bias_tau,
+            dt, C, f_mean, ins.origin_llh, math.inf, math.inf,  # random-walk biases
             ins.gyro_correction, ins.accel_correction, self._gamma)
         q = np.zeros(ix.n)  # white-noise densities on the diagonal of Q_c
         q[ix.V] = cfg.accel_vrw**2
