@@ -20,6 +20,7 @@ ending beside a click).
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -207,7 +208,8 @@ def _ray_line(origin: np.ndarray, azimuth: float, centre: np.ndarray, direction:
 
 
 def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
-                  structure: Structure, water_down_m: float | None) -> BerthLine | None:
+                  structure: Structure, water_down_m: float | None,
+                  attitude_cov: np.ndarray | None = None) -> BerthLine | None:
     """The berth line on the quay face between two clicks of the frame seen from ``pose``
     (module docstring); None when the structure does not support it.
 
@@ -239,7 +241,7 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     half = abs(float(_wrap(click_az[1] - click_az[0]))) / 2
     mid = float(_wrap(click_az[0] + _wrap(click_az[1] - click_az[0]) / 2))
     sector = usable & (np.abs(_wrap(azimuths - mid)) <= half + np.radians(SECTOR_MARGIN_DEG))
-    bound = water_bounds(projector, cam, rays, water_down_m)
+    bound = water_bounds(projector, cam, rays, water_down_m, attitude_cov)
     px = [np.nan_to_num(np.hypot(uv[:, 0] - u, uv[:, 1] - v), nan=np.inf) for u, v in clicks]
     at = usable & ((px[0] <= CLICK_RADII[0] * projector.width)  # right at a click
                    | (px[1] <= CLICK_RADII[0] * projector.width))
@@ -278,11 +280,31 @@ def fit_quay_face(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
     return _face_line(fit, np.array(ends), "image", cam)
 
 
+@dataclass(frozen=True)
+class WaterHit:
+    """Where a click's ray meets the water, and how its plan range moves: by a slipped click
+    (its own), by the camera's height over the water and by the camera's attitude (both
+    shared by every click of one frame)."""
+
+    point: np.ndarray  # NED (m)
+    range_m: float  # in plan, from the camera
+    slip_sigma_m: float  # a click slipped by CLICK_SLIP_PX
+    per_height: float  # m of range per m of camera height
+    per_attitude: np.ndarray  # (3,) m of range per rad of attitude error (rotation in L)
+
+    def sigma(self, attitude_cov: np.ndarray | None = None) -> float:
+        """The range's σ: slip, height off by CAMERA_HEIGHT_SIGMA_M, ``attitude_cov`` (rad²)."""
+        var = self.slip_sigma_m ** 2 + (self.per_height * CAMERA_HEIGHT_SIGMA_M) ** 2
+        if attitude_cov is not None:
+            var += float(self.per_attitude @ np.asarray(attitude_cov, float)
+                         @ self.per_attitude)
+        return math.sqrt(var)
+
+
 def water_range(projector: Projector, cam: np.ndarray, ray: np.ndarray,
-                water_down_m: float | None) -> tuple[np.ndarray, float, float] | None:
-    """Where a click's ray meets the water: the point, its plan range and that range's σ (a
-    click slipped by CLICK_SLIP_PX, the camera's height over the water off by
-    CAMERA_HEIGHT_SIGMA_M); None where the ray misses the water or the level is unknown."""
+                water_down_m: float | None) -> WaterHit | None:
+    """Where a click's ray meets the water; None where the ray misses the water or the level
+    is unknown."""
     if water_down_m is None:
         return None
     hit = water_plane_point(cam, ray, water_down_m)
@@ -292,50 +314,67 @@ def water_range(projector: Projector, cam: np.ndarray, ray: np.ndarray,
     rng = float(np.linalg.norm(hit[:2] - cam[:2]))
     focal = float(max(projector.K[0, 0], projector.K[1, 1]))
     # range = height·cot(depression): its sensitivity to the depression and to the height
-    per_px = (height ** 2 + rng ** 2) / height / focal
-    return hit, rng, float(np.hypot(per_px * CLICK_SLIP_PX, rng / height * CAMERA_HEIGHT_SIGMA_M))
+    per_rad = (height ** 2 + rng ** 2) / height
+    # a turn δ of the camera moves the ray by δ × r: its depression by (δ × r)_down / |r_h|
+    # (a large ship's camera 20 m up sees the quay 110 m off at 11 m per degree)
+    r = np.asarray(ray, float) / np.linalg.norm(ray)
+    g = np.array([r[1], -r[0], 0.0]) / max(float(np.hypot(r[0], r[1])), 1e-9)
+    return WaterHit(hit, rng, per_rad / focal * CLICK_SLIP_PX, rng / height, per_rad * g)
 
 
 def water_bounds(projector: Projector, cam: np.ndarray, rays: list[np.ndarray],
-                 water_down_m: float | None) -> np.ndarray:
+                 water_down_m: float | None, attitude_cov: np.ndarray | None = None
+                 ) -> np.ndarray:
     """The farthest plan range each click's surface can lie at: where its ray meets the water,
     plus OCCLUSION_SIGMAS of that range's σ (``water_range``); inf where there is none."""
     bound = np.full(len(rays), np.inf)
     for i, r in enumerate(rays):
         hit = water_range(projector, cam, r, water_down_m)
         if hit is not None:
-            bound[i] = hit[1] + OCCLUSION_SIGMAS * hit[2]
+            bound[i] = hit.range_m + OCCLUSION_SIGMAS * hit.sigma(attitude_cov)
     return bound
 
 
 def water_plane_line(projector: Projector, pose: CameraPose, clicks_uv: np.ndarray,
-                     water_down_m: float | None) -> BerthLine:
+                     water_down_m: float | None, attitude_cov: np.ndarray | None = None
+                     ) -> BerthLine:
     """The line through where the click rays meet the water, with the σ of those ranges
-    carried across the line (at its middle and in its direction); Unprocessable when a ray
-    misses the water."""
+    (``water_range``) carried across the line (at its middle and in its direction);
+    Unprocessable when a ray misses the water."""
     cam = pose.position_ned
-    ends, across = [], []
+    hits = []
     for u, v in np.asarray(clicks_uv, dtype=float).reshape(2, 2):
-        ray = projector.pixel_ray(pose, u, v)
-        hit = water_range(projector, cam, ray, water_down_m)
+        hit = water_range(projector, cam, projector.pixel_ray(pose, u, v), water_down_m)
         if hit is None:
             raise Unprocessable(
                 f"pixel ({u:g}, {v:g}): no converged port structure near the clicks and "
                 "its ray does not meet the water plane (above the horizon, or the water "
                 "level is unknown); click the quay where its points are shown, or type "
                 "the line in from the bow")
-        ends.append(hit[0][:2])
-        across.append((hit[0][:2] - cam[:2]) / hit[1] * hit[2])  # the range's σ, as a vector
-    line = np.array(ends)
+        hits.append(hit)
+    line = np.array([h.point[:2] for h in hits])
     length = float(np.linalg.norm(line[1] - line[0]))
     if length < MIN_LENGTH_M:
         raise Unprocessable(f"the clicks meet the water less than {MIN_LENGTH_M:g} m apart")
     d = (line[1] - line[0]) / length
-    off = [abs(float(a @ np.array([-d[1], d[0]]))) for a in across]  # σ of each end across
-    return BerthLine(line, "image", method="water-plane",
-                     sigma_m=float(0.5 * np.hypot(*off)),
-                     sigma_deg=float(np.degrees(np.hypot(*off) / length)),
-                     note=WATER_PLANE_NOTE)
+    normal = np.array([-d[1], d[0]])
+    # each end's range moves it along its ray; across the line by this much per metre
+    a = [float((h.point[:2] - cam[:2]) @ normal) / h.range_m for h in hits]
+    # the ends' covariance across the line: their own slips, and the camera's height and
+    # attitude that move both at once (the line's middle takes all of those, not 1/√2)
+    J = np.array([[ai * h.per_height * CAMERA_HEIGHT_SIGMA_M, *(ai * h.per_attitude)]
+                  for ai, h in zip(a, hits, strict=True)])
+    shared = np.eye(4)
+    if attitude_cov is not None:
+        shared[1:, 1:] = np.asarray(attitude_cov, float)
+    else:
+        shared[1:, 1:] = 0.0
+    C = J @ shared @ J.T + np.diag([(ai * h.slip_sigma_m) ** 2 for ai, h in zip(a, hits,
+                                                                               strict=True)])
+    middle = 0.5 * math.sqrt(max(C[0, 0] + C[1, 1] + 2.0 * C[0, 1], 0.0))
+    turn = math.sqrt(max(C[0, 0] + C[1, 1] - 2.0 * C[0, 1], 0.0)) / length
+    return BerthLine(line, "image", method="water-plane", sigma_m=float(middle),
+                     sigma_deg=float(np.degrees(turn)), note=WATER_PLANE_NOTE)
 
 
 def _in_front(points_ne: np.ndarray, sigma: np.ndarray, on_plane: np.ndarray,
@@ -533,10 +572,11 @@ class Berth:
             if not (-0.5 <= u <= p.width - 0.5 and -0.5 <= v <= p.height - 0.5):
                 raise Unprocessable(f"pixel ({u:g}, {v:g}) is outside the {p.width}x{p.height}"
                                     " image")
-        fitted = fit_quay_face(p, pose, clicks, structure, self.water_down_m)
+        tilt = getattr(state, "attitude_cov", None)  # the fused attitude's σ tilts the rays
+        fitted = fit_quay_face(p, pose, clicks, structure, self.water_down_m, tilt)
         if fitted is not None:
             return self._set(fitted, state)
-        return self._set(water_plane_line(p, pose, clicks, self.water_down_m), state)
+        return self._set(water_plane_line(p, pose, clicks, self.water_down_m, tilt), state)
 
     def set_from_bow(self, state: Any, distance_m: float, bearing_deg: float) -> BerthLine:
         line = line_from_bow(state, self.rec.hull.outline_body, distance_m, bearing_deg)

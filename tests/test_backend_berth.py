@@ -114,6 +114,27 @@ def test_without_structure_the_line_falls_back_to_the_water_plane_and_says_so():
     assert berth.set_image(state, coping, _port()).method == "quay-face"
 
 
+@pytest.mark.parametrize("pitch_deg", [1.0, -1.0])
+def test_a_water_plane_line_carries_the_fused_tilt_sigma(pitch_deg):
+    """The water plane's range is height·cot(depression): a fused pitch off by a degree moves a
+    line 15 m off by 4 m from 1 m up (a large ship's camera 20 m up, 110 m off: 11 m per
+    degree). The line's σ carries the attitude's σ, so the error stays within 2σ."""
+    truth = make_state()
+    foot = _pixel(truth, [[QUAY_N, -4.0, WATER], [QUAY_N, 5.0, WATER]])
+    fused = make_state(euler=(0.0, np.radians(pitch_deg), 0.0))  # its pitch 1° off ...
+    fused.attitude_cov = np.eye(3) * np.radians(0.7) ** 2  # ... under a σ of 0.7°
+    berth = _berth()
+    line = berth.set_image(fused, foot, Structure(None))
+    assert line.method == "water-plane"
+    status = berth.status(fused, 0.0)
+    error = status["bow_distance_m"] - TRUE_BOW
+    assert abs(error) > 2.0, error  # the tilt moves it by metres
+    assert abs(error) <= 2.0 * status["bow_distance_sigma_m"], (error, status)
+    fused.attitude_cov = np.eye(3) * 1e-12  # a perfect tilt: the σ of a slipped click only
+    berth.set_image(fused, foot, Structure(None))
+    assert berth.status(fused, 0.0)["bow_distance_sigma_m"] < abs(error) / 2.0
+
+
 def test_a_surface_behind_the_water_a_click_shows_is_not_the_quay():
     """The fault of 2026-11-27 on the bundled recording: the quay face has no points near the
     right click (a bare stretch of wall), a building behind the quay has, its wall receding
