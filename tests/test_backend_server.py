@@ -237,7 +237,8 @@ def test_pose_history_trajectory_structure_prediction_report(live: Live, replaye
         dist = np.hypot(e[:, 0], e[:, 1])  # (the trajectory's positions to 0.1 mm)
         assert report["horizontal_error_m"]["std"] == pytest.approx(
             np.sqrt(np.var(e[:, 0]) + np.var(e[:, 1])), abs=5e-5)  # (|e|'s own: 3e-4 off)
-        assert report["horizontal_error_m"]["max"] == pytest.approx(dist.max(), abs=5e-5)
+        # (0.1 mm rounding per axis here and at the aligning pose: up to 0.14 mm apart)
+        assert report["horizontal_error_m"]["max"] == pytest.approx(dist.max(), abs=1.5e-4)
         assert np.isfinite(report["heading_error_deg"]["max"])
         # out of range and wrongly typed queries
         for params, status in (({"t": 100.0}, 422), ({"t": -1}, 422), ({"t": "soon"}, 422)):
