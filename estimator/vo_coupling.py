@@ -57,6 +57,10 @@ MAX_PULL_DEG = 3.0
 # agrees again sooner): it is restarted, if the fused track it disagrees with rests on the
 # carrier phase (coasting on the INS, the fused track is the doubtful one).
 VO_RESTART_AFTER_S = 15.0
+# A frame's time is its exposure's to within the jitter of its stamps (a live camera stamps
+# arrival: tens of ms): the scatter of the last frame intervals about their median measures
+# it, and a turn at ω moves the VO's rotation by ω times it against the gyro's at the stamps.
+FRAME_INTERVALS = 50
 
 
 @dataclass(frozen=True)
@@ -113,12 +117,19 @@ class VoConsistency:
         # the last frame up to which the gyro's rotation was no measurement: no window holding
         # it judges the VO's rotation
         self._unmeasured_at = -math.inf
+        self._intervals: deque[float] = deque(maxlen=FRAME_INTERVALS)
+        self.time_sigma = 0.0  # s, the stamps' jitter (FRAME_INTERVALS module comment)
 
     def check(self, now: _Seen, gyro_measured: bool = True) -> VoDisagreement | None:
         """Add a tracked frame; the worst disagreeing window ending at it, None if none.
         ``gyro_measured`` False: ``C_gyro`` up to this frame turned on an IMU gap's held mean
         rate, or the gyro is declared off (``carrier_phase.GyroCheck``)."""
         seen = self._seen
+        if seen and 0.0 < now.t - seen[-1].t < 1.0:  # (a gap or a seek is no jitter)
+            self._intervals.append(now.t - seen[-1].t)
+            dt = np.asarray(self._intervals)
+            # one interval's scatter is two stamps' jitter: /√2
+            self.time_sigma = 1.4826 * float(np.median(np.abs(dt - np.median(dt)))) / math.sqrt(2)
         if seen and (seen[-1].segment != now.segment or now.t < seen[-1].t):
             seen.clear()  # another VO world (or time went back): nothing to compare with
             self._unmeasured_at = -math.inf
@@ -147,7 +158,9 @@ class VoConsistency:
         R_gyro = self.C_cb.T @ now.C_gyro.T @ old.C_gyro @ self.C_cb
         angle = float(np.linalg.norm(dcm_to_rotvec(R_vo @ R_gyro.T)))
         travel = float(np.linalg.norm(now.camera_position_ned - old.camera_position_ned))
-        var = cfg.vo_attitude_psd * (now.t - old.t) + cfg.vo_attitude_per_m * travel
+        rate = float(np.linalg.norm(dcm_to_rotvec(R_gyro))) / max(now.t - old.t, 1e-6)
+        var = (cfg.vo_attitude_psd * (now.t - old.t) + cfg.vo_attitude_per_m * travel
+               + 2.0 * (rate * self.time_sigma) ** 2)  # both ends' stamps
         return VoDisagreement("rotation", angle, now.t - old.t, angle**2 / var)
 
     def _direction(self, old: _Seen, now: _Seen) -> VoDisagreement | None:
