@@ -364,11 +364,10 @@ def water_plane_line(projector: Projector, pose: CameraPose, clicks_uv: np.ndarr
     # attitude that move both at once (the line's middle takes all of those, not 1/√2)
     J = np.array([[ai * h.per_height * CAMERA_HEIGHT_SIGMA_M, *(ai * h.per_attitude)]
                   for ai, h in zip(a, hits, strict=True)])
-    shared = np.eye(4)
+    shared = np.zeros((4, 4))
+    shared[0, 0] = 1.0  # (the height's σ is in J)
     if attitude_cov is not None:
         shared[1:, 1:] = np.asarray(attitude_cov, float)
-    else:
-        shared[1:, 1:] = 0.0
     C = J @ shared @ J.T + np.diag([(ai * h.slip_sigma_m) ** 2 for ai, h in zip(a, hits,
                                                                                strict=True)])
     middle = 0.5 * math.sqrt(max(C[0, 0] + C[1, 1] + 2.0 * C[0, 1], 0.0))
