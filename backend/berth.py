@@ -289,16 +289,24 @@ class WaterHit:
     point: np.ndarray  # NED (m)
     range_m: float  # in plan, from the camera
     slip_sigma_m: float  # a click slipped by CLICK_SLIP_PX
-    per_height: float  # m of range per m of camera height
-    per_attitude: np.ndarray  # (3,) m of range per rad of attitude error (rotation in L)
+    # (4,) m of range per m of camera height and per rad of attitude error (rotation in L),
+    # the errors of ``shared_covariance``
+    per_shared: np.ndarray
 
     def sigma(self, attitude_cov: np.ndarray | None = None) -> float:
-        """The range's σ: slip, height off by CAMERA_HEIGHT_SIGMA_M, ``attitude_cov`` (rad²)."""
-        var = self.slip_sigma_m ** 2 + (self.per_height * CAMERA_HEIGHT_SIGMA_M) ** 2
-        if attitude_cov is not None:
-            var += float(self.per_attitude @ np.asarray(attitude_cov, float)
-                         @ self.per_attitude)
-        return math.sqrt(var)
+        """The range's σ: slip, height and attitude (``shared_covariance``)."""
+        return math.sqrt(self.slip_sigma_m ** 2 + float(
+            self.per_shared @ shared_covariance(attitude_cov) @ self.per_shared))
+
+
+def shared_covariance(attitude_cov: np.ndarray | None) -> np.ndarray:
+    """(4,4) covariance of the errors every click of a frame shares: the camera's height over
+    the water (CAMERA_HEIGHT_SIGMA_M) and the fused attitude (rad², none when not given)."""
+    S = np.zeros((4, 4))
+    S[0, 0] = CAMERA_HEIGHT_SIGMA_M ** 2
+    if attitude_cov is not None:
+        S[1:, 1:] = np.asarray(attitude_cov, float)
+    return S
 
 
 def water_range(projector: Projector, cam: np.ndarray, ray: np.ndarray,
@@ -319,7 +327,8 @@ def water_range(projector: Projector, cam: np.ndarray, ray: np.ndarray,
     # (a large ship's camera 20 m up sees the quay 110 m off at 11 m per degree)
     r = np.asarray(ray, float) / np.linalg.norm(ray)
     g = np.array([r[1], -r[0], 0.0]) / max(float(np.hypot(r[0], r[1])), 1e-9)
-    return WaterHit(hit, rng, per_rad / focal * CLICK_SLIP_PX, rng / height, per_rad * g)
+    return WaterHit(hit, rng, per_rad / focal * CLICK_SLIP_PX,
+                    np.concatenate([[rng / height], per_rad * g]))
 
 
 def water_bounds(projector: Projector, cam: np.ndarray, rays: list[np.ndarray],
@@ -362,14 +371,9 @@ def water_plane_line(projector: Projector, pose: CameraPose, clicks_uv: np.ndarr
     a = [float((h.point[:2] - cam[:2]) @ normal) / h.range_m for h in hits]
     # the ends' covariance across the line: their own slips, and the camera's height and
     # attitude that move both at once (the line's middle takes all of those, not 1/√2)
-    J = np.array([[ai * h.per_height * CAMERA_HEIGHT_SIGMA_M, *(ai * h.per_attitude)]
-                  for ai, h in zip(a, hits, strict=True)])
-    shared = np.zeros((4, 4))
-    shared[0, 0] = 1.0  # (the height's σ is in J)
-    if attitude_cov is not None:
-        shared[1:, 1:] = np.asarray(attitude_cov, float)
-    C = J @ shared @ J.T + np.diag([(ai * h.slip_sigma_m) ** 2 for ai, h in zip(a, hits,
-                                                                               strict=True)])
+    J = np.array([ai * h.per_shared for ai, h in zip(a, hits, strict=True)])
+    C = J @ shared_covariance(attitude_cov) @ J.T \
+        + np.diag([(ai * h.slip_sigma_m) ** 2 for ai, h in zip(a, hits, strict=True)])
     middle = 0.5 * math.sqrt(max(C[0, 0] + C[1, 1] + 2.0 * C[0, 1], 0.0))
     turn = math.sqrt(max(C[0, 0] + C[1, 1] - 2.0 * C[0, 1], 0.0)) / length
     return BerthLine(line, "image", method="water-plane", sigma_m=float(middle),
@@ -571,11 +575,12 @@ class Berth:
             if not (-0.5 <= u <= p.width - 0.5 and -0.5 <= v <= p.height - 0.5):
                 raise Unprocessable(f"pixel ({u:g}, {v:g}) is outside the {p.width}x{p.height}"
                                     " image")
-        tilt = getattr(state, "attitude_cov", None)  # the fused attitude's σ tilts the rays
-        fitted = fit_quay_face(p, pose, clicks, structure, self.water_down_m, tilt)
+        attitude_cov = getattr(state, "attitude_cov", None)  # its σ tilts the click rays
+        fitted = fit_quay_face(p, pose, clicks, structure, self.water_down_m, attitude_cov)
         if fitted is not None:
             return self._set(fitted, state)
-        return self._set(water_plane_line(p, pose, clicks, self.water_down_m, tilt), state)
+        return self._set(water_plane_line(p, pose, clicks, self.water_down_m, attitude_cov),
+                         state)
 
     def set_from_bow(self, state: Any, distance_m: float, bearing_deg: float) -> BerthLine:
         line = line_from_bow(state, self.rec.hull.outline_body, distance_m, bearing_deg)
