@@ -64,6 +64,8 @@ FIGURES = (
     ("main_max_cm", "CPP max", "low", 5.0, None, "{:.2f}"),
     ("depth_median_m", "depth<30", "low", 0.15, None, "{:.3f}"),
     ("depth_points", "n<30", "high", None, None, "{:.0f}"),
+    ("depth_within_2sigma", "depth 2σ", "high", 0.95, None, "{:.2f}"),
+    ("depth_beyond_3sigma", ">3σ", "low", None, None, "{:.0f}"),
     ("target_within_tol", "tgt tol", "high", 0.9, None, "{:.2f}"),
     ("target_within_2sigma", "tgt 2σ", "high", 0.95, None, "{:.2f}"),
     ("target_median_m", "tgt med", "low", None, None, "{:.3f}"),
@@ -160,6 +162,9 @@ def evaluate_seed(cache: str | None, scenario: str, seed: int | str, end_s: floa
     near = dt.refined_converged.within_30m if dt is not None else None
     row["depth_median_m"] = near.depth_median_m if near is not None else None
     row["depth_points"] = near.points if near is not None else 0
+    cover = dt.sigma_cover if dt is not None else None
+    row["depth_within_2sigma"] = cover.within_2sigma if cover is not None else None
+    row["depth_beyond_3sigma"] = cover.beyond_3sigma if cover is not None else None
     tr = rep.tracking.methods.get(DESIGNATED) if rep.tracking is not None else None
     dist = tr.distance_m if tr is not None else None
     row["target_within_tol"] = dist.within_tolerance if dist is not None else None

@@ -26,6 +26,7 @@ from .records import (
     LandmarkReport,
     MatchStats,
     SceneMatch,
+    SigmaCover,
     ViewsRow,
 )
 from .runs import VIEW_CHECKPOINTS, FusionRun
@@ -33,6 +34,7 @@ from .scoring import BANDS_M, NEAR_M, band_range, point_scores
 from .truth import Truth, rebuild_scene, scene_depth, true_cameras
 
 LandmarkTruth = dict[int, tuple[int, float, np.ndarray]]  # id → (frame, depth, true point)
+EdgeTruth = dict[int, tuple[int, float, float]]  # id → (frame, nearest, farthest depth)
 SAME_SET_MIN = 200  # landmarks the "same landmarks all along" curve needs at its last count
 
 
@@ -50,15 +52,16 @@ def evaluate_landmarks(rec: Recording, run: FusionRun,
     truth = true_cameras(rec, run.time, run.origin_time)
     ok = np.flatnonzero(np.isfinite(run.position).all(axis=1))
     cam_end = truth.position[int(ok[-1])] - truth.origin  # true camera at the end, fusion frame
-    pts, _sig, ids = run.structure
+    pts, sig, ids = run.structure
     raw, _rsig, raw_ids = run.structure_raw
     out.points, out.refined_points = int(len(raw_ids)), int(len(ids))
     out.scene_point_match = {"raw": _scene_match(rec, truth, raw, cam_end),
                              "refined": _scene_match(rec, truth, pts, cam_end)}
-    lt = _landmark_truth(rec, run, truth, progress)
-    if lt is None:
+    truths = _landmark_truth(rec, run, truth, progress)
+    if truths is None:
         out.reason = "no rendered truth (not a simulated recording whose scene can be rebuilt)"
         return out
+    lt, edges = truths
     # The reported (refined) points are the landmarks that passed their checks: a subset of
     # the raw VO points. "raw_same_points" scores the raw points of that same subset.
     raw_row = {int(i): k for k, i in enumerate(raw_ids)}
@@ -72,7 +75,8 @@ def evaluate_landmarks(rec: Recording, run: FusionRun,
         raw_same_points=_depth_scores(lt, truth, ids[same >= 0], raw[same[same >= 0]], cam_end),
         raw_converged=_depth_scores(lt, truth, raw_ids[conv_raw], raw[conv_raw], cam_end),
         refined_converged=_depth_scores(lt, truth, ids[conv], pts[conv], cam_end),
-        truth_points=len(lt))
+        truth_points=len(lt),
+        sigma_cover=_sigma_cover(lt, edges, truth, ids[conv], pts[conv], sig[conv], cam_end))
     out.error_vs_views = _views_curve(lt, truth, run)
     out.error_vs_views_same_landmarks = _same_landmarks_curve(lt, truth, run)
     return out
@@ -119,9 +123,11 @@ def _same_landmarks_curve(lt: LandmarkTruth, truth: Truth, run: FusionRun) -> li
 
 
 def _landmark_truth(rec: Recording, run: FusionRun, truth: Truth,
-                    progress: Callable[[str], None] | None = None) -> LandmarkTruth | None:
+                    progress: Callable[[str], None] | None = None
+                    ) -> tuple[LandmarkTruth, EdgeTruth] | None:
     """id → (frame, true depth, true surface point in the reference frame) at the pixel of
-    the landmark's last view (rendered true depth; None for a real recording)."""
+    the landmark's last view (rendered true depth; None for a real recording), and for the
+    pixels on a depth edge id → (frame, nearest, farthest depth around it)."""
     scene = rebuild_scene(rec)
     if scene is None:
         return None
@@ -132,6 +138,7 @@ def _landmark_truth(rec: Recording, run: FusionRun, truth: Truth,
     for pid, (k, uv) in run.last_views.items():
         by_frame.setdefault(k, []).append((pid, uv))
     out: LandmarkTruth = {}
+    edges: EdgeTruth = {}
     for n, k in enumerate(sorted(by_frame)):
         C, c = truth.C_level_to_camera[k], truth.position[k]
         depth = scene_depth(scene, truth, k, run.time[k] - start, cam)
@@ -145,11 +152,40 @@ def _landmark_truth(rec: Recording, run: FusionRun, truth: Truth,
             win = depth[iv - 1:iv + 2, iu - 1:iu + 2]
             z = float(depth[iv, iu])
             if not np.isfinite(win).all() or float(win.max() - win.min()) > 0.05 * z:
-                continue  # a depth edge: the corner's truth is ambiguous
+                # A depth edge: the corner's truth is ambiguous, either surface around it.
+                span = win[np.isfinite(win)]
+                if len(span):
+                    edges[int(pid)] = (k, float(span.min()), float(span.max()))
+                continue
             out[int(pid)] = (k, z, C.T @ (np.array([x, y, 1.0]) * z) + c)
         if progress is not None and n % 50 == 0:
             progress(f"landmark truth: {n}/{len(by_frame)} frames rendered")
-    return out
+    return out, edges
+
+
+def _sigma_cover(lt: LandmarkTruth, edges: EdgeTruth, truth: Truth, ids: np.ndarray,
+                 X: np.ndarray, sigma: np.ndarray, cam_end: np.ndarray) -> SigmaCover:
+    """``SigmaCover`` of the points ``X`` (fusion frame) with their stated 1-σ ``sigma``."""
+    ratios, on_edge = [], []
+    X = np.asarray(X, float).reshape(-1, 3)
+    near = np.linalg.norm(X - cam_end, axis=1) < NEAR_M
+    for pid, x, s in zip(np.asarray(ids)[near], X[near], np.asarray(sigma, float)[near],
+                         strict=True):
+        pid = int(pid)
+        k, depths = (lt[pid][0], [lt[pid][1]]) if pid in lt else \
+            (edges[pid][0], list(edges[pid][1:])) if pid in edges else (None, [])
+        if k is None:
+            continue
+        z = float(truth.C_level_to_camera[k][2] @ (x + truth.origin - truth.position[k]))
+        ratios.append(min(abs(z - d) for d in depths) / max(float(s), 1e-9))
+        on_edge.append(pid not in lt)
+    if not ratios:
+        return SigmaCover()
+    r, e = np.array(ratios), np.array(on_edge, bool)
+    return SigmaCover(points=len(r), within_2sigma=float(np.mean(r <= 2.0)),
+                      beyond_3sigma=int(np.sum(r > 3.0)), worst_ratio=float(r.max()),
+                      edge_points=int(e.sum()),
+                      edge_within_2sigma=float(np.mean(r[e] <= 2.0)) if e.any() else None)
 
 
 def _depth_errors(lt: LandmarkTruth, truth: Truth, ids: np.ndarray, X: np.ndarray

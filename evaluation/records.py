@@ -287,6 +287,21 @@ class DepthScores:
 
 
 @dataclass
+class SigmaCover:
+    """Does the structure's stated σ cover its depth error? The converged points within 30 m
+    of the camera at the end whose last view has a rendered truth: the share within 2σ, how
+    many beyond 3σ and the largest |error| / σ. A point on a depth edge (the corner of a
+    near surface against a far one) is within when it is within 2σ of either surface."""
+
+    points: int = 0
+    within_2sigma: float | None = None
+    beyond_3sigma: int = 0
+    worst_ratio: float | None = None
+    edge_points: int = 0
+    edge_within_2sigma: float | None = None
+
+
+@dataclass
 class DepthTruth:
     raw: DepthScores
     refined: DepthScores
@@ -294,6 +309,7 @@ class DepthTruth:
     raw_converged: DepthScores
     refined_converged: DepthScores
     truth_points: int
+    sigma_cover: SigmaCover | None = None
 
 
 @dataclass

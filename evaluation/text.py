@@ -222,6 +222,13 @@ def _landmarks(landmarks: LandmarkReport) -> list[str]:
                          f"{f(w.depth_median_m, '.3f')} m p90 {f(w.depth_p90_m, '.2f')} m, "
                          f"3-D error median {f(w.xyz_median_m, '.3f')} m ({w.points} points); "
                          f"last seen at 10–30 m: {f(b.xyz_median_m, '.3f')} m ({b.points})")
+        sc = dt.sigma_cover
+        if sc is not None and sc.points:
+            lines.append(f"  refined, converged within 30 m: depth error within 2σ "
+                         f"{f(sc.within_2sigma, '.3f')}, beyond 3σ {sc.beyond_3sigma} of "
+                         f"{sc.points}, worst {f(sc.worst_ratio, '.1f')}σ; on a depth edge "
+                         f"{sc.edge_points} (within 2σ of a surface "
+                         f"{f(sc.edge_within_2sigma, '.2f')})")
     elif landmarks.reason:
         lines.append(f"  {landmarks.reason}")
     if landmarks.error_vs_views_same_landmarks:

@@ -198,3 +198,27 @@ def test_a_click_on_a_nearer_silhouette_has_no_far_truth() -> None:
     assert clickable(boat, np.array([2.0, 6.0]), 20.0)  # clear of the hull: clickable again
     assert not clickable(depth, uv, 25.0)  # hidden behind the quay face
     assert not clickable(depth, np.array([0.0, 4.0]), 20.0)  # at the image border
+
+
+def test_sigma_cover_counts_a_point_between_two_surfaces_as_wrong() -> None:
+    """``evaluation.landmarks._sigma_cover``: a structure point is covered when its depth is
+    within 2σ of the rendered truth — on a depth edge, of either surface; a phantom between
+    the quay's coping (10 m) and the building behind it (20 m) is wrong for both."""
+    import numpy as np
+
+    from evaluation.landmarks import _sigma_cover
+    from evaluation.truth import Truth
+
+    # One camera at the origin looking north (its z along north).
+    C = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    truth = Truth(C[None], np.zeros((1, 3)), np.zeros(3))
+    lt = {1: (0, 10.0, np.array([10.0, 0, 0])), 2: (0, 10.0, np.array([10.0, 0, 0])),
+          3: (0, 40.0, np.array([40.0, 0, 0]))}
+    edges = {4: (0, 10.0, 20.0), 5: (0, 10.0, 20.0)}
+    X = np.array([[10.15, 0, 0], [10.5, 0, 0], [40.0, 0, 0], [15.0, 0, 0], [19.0, 0, 0]])
+    sigma = np.array([0.1, 0.1, 0.1, 1.0, 1.0])
+    cover = _sigma_cover(lt, edges, truth, np.arange(1, 6), X, sigma, np.zeros(3))
+    # point 3 is beyond 30 m of the camera: left out
+    assert (cover.points, cover.edge_points, cover.beyond_3sigma) == (4, 2, 2)
+    assert cover.within_2sigma == 0.5 and cover.edge_within_2sigma == 0.5
+    assert abs(cover.worst_ratio - 5.0) < 1e-9
