@@ -337,7 +337,8 @@ class Fusion:
         """Port-structure points in L, their 1-σ (m), ids. Without ``refined``: the VO points
         (scaled, drift-corrected). With it (and the landmark refinement on): a reportable
         landmark (``LandmarkMap.classify``: enough views and parallax, views that agree,
-        above the water) gives its refined position, its σ the RMS per axis of its covariance;
+        above the water) gives its refined position, its σ its covariance's along the viewing
+        ray from the camera that last saw it (a monocular point errs along its ray);
         a rejected one (water patterns, reflections, mistracks) is left out; one still
         converging keeps the VO point with the larger of the two σ, and is left out when that
         σ exceeds its range."""

@@ -421,17 +421,26 @@ class VoCoupling:
         rows, ok, rejected = lm.classify(ids_a)
         have = rows >= 0
         x_lm, P_lm = lm.best(rows[have])
-        sig_lm = np.sqrt(np.trace(P_lm, axis1=1, axis2=2) / 3.0)
         pts_a[ok] = x_lm[ok[have]]
+        seen_from = lm.last_camera[rows[have]]
+        unseen = ~np.isfinite(seen_from).all(axis=1)
+        if ekf is not None:
+            seen_from[unseen] = ekf.camera_position()
+        # A monocular point errs along its viewing ray: its σ is the covariance's along the
+        # ray from the camera that last saw it (else the current one), what a click or a
+        # distance along that ray reads and what the map's own convergence test uses — not
+        # the RMS of the three axes, which understated it by up to √3.
+        sig_lm = np.sqrt(np.trace(P_lm, axis1=1, axis2=2) / 3.0)  # no camera at all
+        ray = x_lm - seen_from
+        norm = np.linalg.norm(ray, axis=1)
+        along = np.isfinite(norm) & (norm > 0)
+        u = ray[along] / norm[along, None]
+        sig_lm[along] = np.sqrt(np.einsum("ni,nij,nj->n", u, P_lm[along], u))
         # Reportable: the landmark's σ; still converging: the larger of the two.
         sig_a[have] = np.where(ok[have], sig_lm, np.maximum(sig_a[have], sig_lm))
         # A point whose σ exceeds its range (from the camera that last saw it, else the
         # current one) says nothing of where it is (a far VO point re-triangulated near, a
         # reflection): left out.
-        seen_from = lm.last_camera[rows[have]]
-        unseen = ~np.isfinite(seen_from).all(axis=1)
-        if ekf is not None:
-            seen_from[unseen] = ekf.camera_position()
         vague = np.zeros(len(ids_a), bool)
         with np.errstate(invalid="ignore"):  # no camera at all: NaN, kept
             vague[have] = sig_a[have] > np.linalg.norm(pts_a[have] - seen_from, axis=1)
