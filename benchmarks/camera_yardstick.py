@@ -13,7 +13,8 @@ functions (``evaluation.report.evaluate``), trimmed to what the issue's targets 
   the 30 s initialisation, then no satellite at all, tightly coupled (``satellites_keep=[]``;
   the "tight, 0 satellites" row of tables 18–19 is this same run);
 - the port structure: depth error of the converged refined points within 30 m of the camera
-  at the end (rendered true depth at each landmark's last view);
+  at the end (rendered true depth at each landmark's last view), and whether their stated σ
+  covers it (``depth 2σ``: the share within 2σ; ``>3σ``: the points beyond 3σ);
 - the designated targets on the server's path (``FollowedTarget``, no ablations): the share
   of tracked frames whose distance is within tolerance (max(0.1 m, 1 %)) and within 2σ; and
   what limits them (``evaluation.tracking.error_sources``): the share of refined clicks
