@@ -134,6 +134,16 @@ def converged(sigma_m: np.ndarray, range_m: np.ndarray) -> np.ndarray:
         range_m, float)
 
 
+def sigma_along_ray(x: np.ndarray, P: np.ndarray, camera_position_ned: np.ndarray
+                    ) -> np.ndarray:
+    """(N,) σ (m) of points ``x`` (N,3) with covariances ``P`` (N,3,3) along their viewing
+    rays from ``camera_position_ned`` (N,3): where a monocular point errs, and what a
+    distance along the ray reads. NaN where the camera is not known."""
+    d = np.asarray(x, float).reshape(-1, 3) - np.asarray(camera_position_ned, float)
+    u = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+    return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", u, P, u), 0.0))
+
+
 def camera_pose_covariance(position_cov: np.ndarray, attitude_cov: np.ndarray,
                            lever_level: np.ndarray,
                            cross_cov: np.ndarray | None = None) -> np.ndarray:
@@ -962,14 +972,10 @@ class LandmarkMap:
         agree = self.nis[rows] / (2.0 * np.maximum(views, 1)) <= prm.max_mean_nis
         if prm.water_down_m is not None:
             agree &= self.x[rows, 2] <= prm.water_down_m - prm.water_margin_m
-        cam = self.last_camera[rows]
-        seen = np.isfinite(cam).all(axis=1)
-        d = self.x[rows] - np.where(seen[:, None], cam, 0.0)
-        rng = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
-        u = d / rng[:, None]
-        P = self.P[rows] + self.corner_bias(rows, self.x[rows])
-        s_ray = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", u, P, u), 0.0))
-        parallax = ~seen | (s_ray <= prm.max_relative_sigma * rng)
+        x, cam = self.x[rows], self.last_camera[rows]
+        s_ray = sigma_along_ray(x, self.P[rows] + self.corner_bias(rows, x), cam)
+        rng = np.maximum(np.linalg.norm(x - cam, axis=1), 1e-9)
+        parallax = ~np.isfinite(cam).all(axis=1) | (s_ray <= prm.max_relative_sigma * rng)
         return settled & agree & parallax, ~self.alive[rows] | (settled & ~agree)
 
     def classify(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -36,7 +36,13 @@ import numpy as np
 from .ekf import EkfConfig, ErrorStateEkf, chi2_gate
 from .frames import dcm_to_rotvec
 from .integrity import IntegrityMonitor
-from .landmarks import LandmarkMap, LandmarkParams, SolvedViews, camera_pose_covariance
+from .landmarks import (
+    LandmarkMap,
+    LandmarkParams,
+    SolvedViews,
+    camera_pose_covariance,
+    sigma_along_ray,
+)
 from .records import CameraCalibration
 from .vo import VoOutput
 
@@ -430,12 +436,9 @@ class VoCoupling:
         # ray from the camera that last saw it (else the current one), what a click or a
         # distance along that ray reads and what the map's own convergence test uses — not
         # the RMS of the three axes, which understated it by up to √3.
-        sig_lm = np.sqrt(np.trace(P_lm, axis1=1, axis2=2) / 3.0)  # no camera at all
-        ray = x_lm - seen_from
-        norm = np.linalg.norm(ray, axis=1)
-        along = np.isfinite(norm) & (norm > 0)
-        u = ray[along] / norm[along, None]
-        sig_lm[along] = np.sqrt(np.einsum("ni,nij,nj->n", u, P_lm[along], u))
+        sig_lm = sigma_along_ray(x_lm, P_lm, seen_from)
+        nowhere = ~np.isfinite(sig_lm)  # no camera at all: the RMS over the axes
+        sig_lm[nowhere] = np.sqrt(np.trace(P_lm[nowhere], axis1=1, axis2=2) / 3.0)
         # Reportable: the landmark's σ; still converging: the larger of the two.
         sig_a[have] = np.where(ok[have], sig_lm, np.maximum(sig_a[have], sig_lm))
         # A point whose σ exceeds its range (from the camera that last saw it, else the

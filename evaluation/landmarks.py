@@ -166,19 +166,20 @@ def _landmark_truth(rec: Recording, run: FusionRun, truth: Truth,
 def _sigma_cover(lt: LandmarkTruth, edges: EdgeTruth, truth: Truth, ids: np.ndarray,
                  X: np.ndarray, sigma: np.ndarray, cam_end: np.ndarray) -> SigmaCover:
     """``SigmaCover`` of the points ``X`` (fusion frame) with their stated 1-σ ``sigma``."""
+    # id → (frame, the true depths a point there may take)
+    surfaces = {pid: (k, (near, far)) for pid, (k, near, far) in edges.items()}
+    surfaces.update({pid: (k, (z,)) for pid, (k, z, _T) in lt.items()})
     ratios, on_edge = [], []
     X = np.asarray(X, float).reshape(-1, 3)
     near = np.linalg.norm(X - cam_end, axis=1) < NEAR_M
     for pid, x, s in zip(np.asarray(ids)[near], X[near], np.asarray(sigma, float)[near],
                          strict=True):
-        pid = int(pid)
-        k, depths = (lt[pid][0], [lt[pid][1]]) if pid in lt else \
-            (edges[pid][0], list(edges[pid][1:])) if pid in edges else (None, [])
-        if k is None:
+        if int(pid) not in surfaces:
             continue
+        k, depths = surfaces[int(pid)]
         z = float(truth.C_level_to_camera[k][2] @ (x + truth.origin - truth.position[k]))
         ratios.append(min(abs(z - d) for d in depths) / max(float(s), 1e-9))
-        on_edge.append(pid not in lt)
+        on_edge.append(len(depths) == 2)
     if not ratios:
         return SigmaCover()
     r, e = np.array(ratios), np.array(on_edge, bool)
