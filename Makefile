@@ -3,12 +3,12 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup browser run test lint
+.PHONY: setup browser run test lint lock
 
-$(BIN)/berthing-aid: pyproject.toml
+$(BIN)/berthing-aid: pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[test]'
 	touch $@
 
 setup: $(BIN)/berthing-aid
@@ -29,3 +29,8 @@ test: setup browser
 
 lint: setup
 	$(BIN)/ruff check .
+
+# Pin what is installed now (after checking the tests and the yardstick on it).
+lock: setup
+	{ sed -n '/^#/p' constraints.txt; $(BIN)/pip freeze --exclude-editable | grep -v '^-e'; } \
+		> constraints.txt.new && mv constraints.txt.new constraints.txt
