@@ -1141,9 +1141,12 @@ class DesignatedTarget:
     def _halves_disagreement(self, rows: np.ndarray, ray_var: np.ndarray, X0: np.ndarray,
                              info0: np.ndarray) -> np.ndarray:
         """(3,3): how far the points of two halves of the views disagree beyond their own
-        covariances (``excess_disagreement``), the larger of two splits: the views before
+        covariances (``excess_disagreement``), the largest of three splits: the views before
         the click (its template tracked back) against those after it (the forward track),
-        and the forward track's older half against its newer one. A template that slid —
+        the forward track's older half against its newer one, and the track back's newer
+        half against its older one (until the forward track has views of its own the point
+        rests on the track back alone, and a template tracked back slides as one tracked
+        forward does). A template that slid —
         along an edge, say, which near the horizon is the direction a depth change moves a
         point — moves the point of the views after the slide and not that of those before
         it, by an error no view's noise explains. A split needs ``min_refine_views`` on
@@ -1152,8 +1155,9 @@ class DesignatedTarget:
         view's (``ray_variance``)."""
         seen = self.seen
         after = rows[seen.t[rows] > self.click_time]  # nearest the click first: oldest first
-        half = len(after) // 2
-        splits = ((rows[seen.t[rows] < self.click_time], after), (after[:half], after[half:]))
+        before = rows[seen.t[rows] < self.click_time]  # nearest the click first: newest first
+        half, back = len(after) // 2, len(before) // 2
+        splits = ((before, after), (after[:half], after[half:]), (before[:back], before[back:]))
         excess = np.zeros((3, 3))
         for a, b in splits:
             E = split_disagreement(seen.C, seen.centre, seen.xy, ray_var, X0, info0, a, b,

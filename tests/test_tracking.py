@@ -968,6 +968,38 @@ def test_a_track_that_slides_after_the_click_widens_its_sigma(along_path):
     assert errors[0.0] <= 2 * sigmas[0.0] and sigmas[0.0] < 0.5 * sigmas[0.3], sigmas
 
 
+def test_a_track_back_that_slid_widens_the_sigma_at_the_click(along_path):
+    """Clicked with no forward view yet: its point rests on its template tracked back alone,
+    here 20 s of views along a 10 m baseline whose older half slid along it at 0.5 px/s
+    (the template tracked back slipping along the quay in the dark). The track back's newer
+    and older halves disagree, and the σ grows to cover the error (seed 113's quay click
+    read 34.1 m ±0.9 for a true 28.6 m while only the forward track's halves were compared;
+    here the σ stayed at 0.10 m for a 0.16 m error). Without the slide nothing is added."""
+    seq, point = along_path
+    m, f = 40, 800.0
+    C, centres, X, xy = baseline_views(m)
+    t = np.linspace(-20.0, -0.5, m)  # s, before the click at 0
+    sigmas = {}
+    for rate in (0.0, 0.5):
+        tgt = DesignatedTarget(seq.cam, seq.images[-1], seq.truth(point)[-1], point, None,
+                               CameraView(T0, *seq.poses[-1]), params=TargetParams(), seed=0)
+        tgt.map.focal = f
+        slid = xy + np.column_stack([rate / f * np.maximum(-10.0 - t, 0.0), np.zeros(m)])
+        tgt.seen = type(tgt.seen)()
+        tgt.seen.add(t, slid, np.zeros(m))
+        tgt.click_time = 0.0
+        tgt.click_point = (X + [0.0, 0.0, 2.0], np.diag([1.0, 1.0, 25.0]))
+        assert tgt.refine(SolvedViews(t, C, centres, np.full(m, 1e-12))) >= m // 2
+        error = float(np.linalg.norm(tgt.position_ned - X))
+        u = (tgt.position_ned - X) / max(error, 1e-12)
+        sigmas[rate] = math.sqrt(u @ tgt.covariance @ u)
+        if rate == 0.0:
+            assert error < 0.01 and error <= 2 * sigmas[rate], (error, sigmas)
+        else:
+            assert error > 0.1, error
+            assert error <= sigmas[rate] and sigmas[rate] > 3 * sigmas[0.0], (error, sigmas)
+
+
 def test_a_forward_track_sliding_late_shows_in_its_halves_disagreement():
     """Views along a 10 m baseline over 20 s; from the middle on the pixels slide along the
     baseline at 0.5 px/s (a template slipping along the quay). The point of all the views is
