@@ -862,8 +862,9 @@ def test_a_common_track_drift_moves_the_triangulated_point():
     assert used.all() and shift > 0.1
     assert shift > 5 * math.sqrt(np.linalg.inv(info)[2, 2])  # beyond the independent noise
     np.testing.assert_allclose(J @ w, moved - est, atol=0.1 * shift)
-    # no time from the reference view, no drift
-    assert np.abs(common_drift_jacobian(C, centres, xy, var, est, *prior, 0 * dt)).max() < 1e-9
+    # no time from the reference view, no drift (but the re-triangulation's rounding over its
+    # finite step: 1.1e-9 on one machine, against entries of ~1e3)
+    assert np.abs(common_drift_jacobian(C, centres, xy, var, est, *prior, 0 * dt)).max() < 1e-6
     # the camera centres' slow error (the fused position's), 5 mm/s along the baseline
     Jc = common_drift_jacobian(C, centres, xy, var, est, *prior, dt, on="centres")
     v = np.array([0.005, 0.0, 0.0])
