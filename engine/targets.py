@@ -25,6 +25,7 @@ from estimator.tracking import (
     TargetParams,
     TargetState,
     depth_edge,
+    in_template,
     point_on_ray,
     structure_point_at,
     under_water,
@@ -114,7 +115,7 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
             half = target_window(projector.width) // 2
             edge = depth_edge(structure.points, structure.sigma, uv, np.array([u, v]),
                               pose.position_ned, half)
-            if not np.any(np.all(np.abs(uv[near] - [u, v]) <= half, axis=1)):
+            if not in_template(uv[near], np.array([u, v]), half).any():
                 cov = cov + _beside_template(point, pose.position_ned, ray, water_down_m, focal)
             return Designation(point, cov, "structure", np.asarray(structure.ids)[near],
                                structure.points[near].mean(axis=0), water_down_m, edge)
@@ -128,7 +129,7 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
     # 2σ along the ray reaches back to where it is WATER_PLANE_STANDING_M above the water.
     height = float(water_down_m) - float(pose.position_ned[2])  # type: ignore[arg-type]
     reach = float(np.linalg.norm(hit[:2] - pose.position_ned[:2]))
-    if reach > WATER_PLANE_MAX_PIXEL_FRACTION * focal * height:
+    if not _pixel_bounds_water(reach, height, focal):
         raise DesignationError(
             f"pixel ({u:g}, {v:g}) has no port-structure point within "
             f"{2 * DESIGNATION_RADIUS_PX:g} px, and its ray meets the water {reach:.0f} m off, "
@@ -155,12 +156,17 @@ def _beside_template(point: np.ndarray, camera_ned: np.ndarray, ray: np.ndarray,
     r = float(np.linalg.norm(np.asarray(point, float) - c))
     hit = None if water_down_m is None else water_plane_point(c, u, water_down_m)
     span = 0.5 * r
-    if hit is not None:
-        height = float(water_down_m) - float(c[2])  # type: ignore[arg-type]
-        reach = float(np.linalg.norm(hit - c))
-        if reach <= WATER_PLANE_MAX_PIXEL_FRACTION * focal_px * height:
-            span = abs(reach - r)
+    if hit is not None and _pixel_bounds_water(float(np.linalg.norm(hit[:2] - c[:2])),
+                                               float(water_down_m) - float(c[2]), focal_px):
+        span = abs(float(np.linalg.norm(hit - c)) - r)
     return (0.5 * span) ** 2 * np.outer(u, u)
+
+
+def _pixel_bounds_water(reach_m: float, height_m: float, focal_px: float) -> bool:
+    """Whether a ray meeting the water ``reach_m`` off (horizontally) from a camera
+    ``height_m`` above it still places a point there: one pixel moves it by at most
+    ``WATER_PLANE_MAX_PIXEL_FRACTION`` of that reach."""
+    return reach_m <= WATER_PLANE_MAX_PIXEL_FRACTION * focal_px * height_m
 
 
 def target_window(image_width: int) -> int:

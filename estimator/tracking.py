@@ -735,6 +735,15 @@ EDGE_RANGE_RATIO = 1.5
 EDGE_POINT_SIGMA_FRACTION = 0.25  # structure points this uncertain (σ / range) say nothing
 
 
+def in_template(uv_points: np.ndarray, click_uv: np.ndarray, half_window_px: float
+                ) -> np.ndarray:
+    """Mask of the points (pixels ``uv_points``, NaN when not in view) inside a clicked
+    template: within ``half_window_px`` of the click each way."""
+    off = np.abs(np.asarray(uv_points, float).reshape(-1, 2)
+                 - np.asarray(click_uv, float).reshape(2))
+    return np.all(np.nan_to_num(off, nan=np.inf) <= half_window_px, axis=1)
+
+
 def depth_edge(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
                click_uv: np.ndarray, camera_position_ned: np.ndarray, half_window_px: float
                ) -> tuple[float, float] | None:
@@ -745,10 +754,8 @@ def depth_edge(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarra
     38-73 m at +-1.2-2.4 m — so the distance the officer reads carries the span as its
     uncertainty (``DesignatedTarget.edge_span_m``)."""
     pts = np.asarray(points_ned, float).reshape(-1, 3)
-    off = np.abs(np.asarray(uv_points, float).reshape(-1, 2)
-                 - np.asarray(click_uv, float).reshape(2))
     ranges = np.linalg.norm(pts - np.asarray(camera_position_ned, float), axis=1)
-    inside = np.all(np.nan_to_num(off, nan=np.inf) <= half_window_px, axis=1) \
+    inside = in_template(uv_points, click_uv, half_window_px) \
         & (np.asarray(sigma_m, float).reshape(-1) <= EDGE_POINT_SIGMA_FRACTION * ranges)
     if inside.sum() < 2:
         return None
@@ -1145,19 +1152,19 @@ class DesignatedTarget:
         the click (its template tracked back) against those after it (the forward track),
         the forward track's older half against its newer one, and the track back's newer
         half against its older one (until the forward track has views of its own the point
-        rests on the track back alone, and a template tracked back slides as one tracked
-        forward does). A template that slid —
-        along an edge, say, which near the horizon is the direction a depth change moves a
-        point — moves the point of the views after the slide and not that of those before
-        it, by an error no view's noise explains. A split needs ``min_refine_views`` on
-        each side. ``rows``: the solved views, nearest the click first — all of them: those
-        the triangulation's gates left out are a half's evidence too; ``ray_var``: every
-        view's (``ray_variance``)."""
+        rests on the track back alone, which slides as a forward track does). A template
+        that slid — along an edge, say, which near the horizon is the direction a depth
+        change moves a point — moves the point of the views after the slide and not that
+        of those before it, by an error no view's noise explains. A split needs
+        ``min_refine_views`` on each side. ``rows``: the solved views, nearest the click
+        first — all of them: those the triangulation's gates left out are a half's evidence
+        too; ``ray_var``: every view's (``ray_variance``)."""
         seen = self.seen
         after = rows[seen.t[rows] > self.click_time]  # nearest the click first: oldest first
         before = rows[seen.t[rows] < self.click_time]  # nearest the click first: newest first
-        half, back = len(after) // 2, len(before) // 2
-        splits = ((before, after), (after[:half], after[half:]), (before[:back], before[back:]))
+        n_after, n_before = len(after) // 2, len(before) // 2
+        splits = ((before, after), (after[:n_after], after[n_after:]),
+                  (before[:n_before], before[n_before:]))
         excess = np.zeros((3, 3))
         for a, b in splits:
             E = split_disagreement(seen.C, seen.centre, seen.xy, ray_var, X0, info0, a, b,
