@@ -25,7 +25,7 @@ from estimator.tracking import (
     TargetParams,
     TargetState,
     depth_edge,
-    in_template,
+    near_click,
     point_on_ray,
     structure_point_at,
     under_water,
@@ -115,7 +115,7 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
             half = target_window(projector.width) // 2
             edge = depth_edge(structure.points, structure.sigma, uv, np.array([u, v]),
                               pose.position_ned, half)
-            if not in_template(uv[near], np.array([u, v]), half).any():
+            if not near_click(uv[near], np.array([u, v]), half).any():
                 cov = cov + _beside_template(point, pose.position_ned, ray, water_down_m, focal)
             return Designation(point, cov, "structure", np.asarray(structure.ids)[near],
                                structure.points[near].mean(axis=0), water_down_m, edge)
@@ -143,14 +143,14 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
 
 def _beside_template(point: np.ndarray, camera_ned: np.ndarray, ray: np.ndarray,
                      water_down_m: float | None, focal_px: float) -> np.ndarray:
-    """(3,3) covariance along the ray for a click whose anchors all lie outside its
-    template (taken from the widened radius): nothing the target's tracker follows ties
-    the click to their surface, so it may be theirs or anything on the ray up to where it
+    """(3,3) covariance along the ray for a click whose anchors all lie farther from it
+    than half its template's side (``near_click``; taken from the widened radius): nothing
+    that ties the click to their surface, so it may be theirs or anything on the ray up to where it
     meets the water (half that span is 1 σ). Where the ray meets the water too far off to
     bound anything (``WATER_PLANE_MAX_PIXEL_FRACTION``), or not at all, half the anchors'
     range is the span. On the 20 small-boat yardstick seeds such designations were within
     2σ for 19 of 26 clicks (short mostly: the anchors on a hull or fender before the quay
-    clicked), those with an anchor inside the template for 270 of 272."""
+    clicked), those with an anchor inside the template for 270 of 272 (square then)."""
     u = np.asarray(ray, float) / np.linalg.norm(ray)
     c = np.asarray(camera_ned, float)
     r = float(np.linalg.norm(np.asarray(point, float) - c))

@@ -744,6 +744,16 @@ def in_template(uv_points: np.ndarray, click_uv: np.ndarray, half_window_px: flo
     return np.all(np.nan_to_num(off, nan=np.inf) <= half_window_px, axis=1)
 
 
+def near_click(uv_points: np.ndarray, click_uv: np.ndarray, radius_px: float) -> np.ndarray:
+    """Mask of the points (pixels ``uv_points``, NaN when not in view) within ``radius_px``
+    of the click. With half a template's side this leaves out the template's corners, where
+    its square reaches past the click's own surface: on 30 small-boat yardstick seeds,
+    designations whose nearest anchor lay 15-21 px from the click (half side 15) were
+    beyond 2σ for 4 of 27, those nearer for 7 of 420."""
+    off = np.asarray(uv_points, float).reshape(-1, 2) - np.asarray(click_uv, float).reshape(2)
+    return np.nan_to_num(np.hypot(off[:, 0], off[:, 1]), nan=np.inf) <= radius_px
+
+
 def depth_edge(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
                click_uv: np.ndarray, camera_position_ned: np.ndarray, half_window_px: float
                ) -> tuple[float, float] | None:
