@@ -143,14 +143,15 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
 
 def _beside_template(point: np.ndarray, camera_ned: np.ndarray, ray: np.ndarray,
                      water_down_m: float | None, focal_px: float) -> np.ndarray:
-    """(3,3) covariance along the ray for a click whose anchors all lie farther from it
-    than half its template's side (``near_click``; taken from the widened radius): nothing
-    that ties the click to their surface, so it may be theirs or anything on the ray up to where it
-    meets the water (half that span is 1 σ). Where the ray meets the water too far off to
-    bound anything (``WATER_PLANE_MAX_PIXEL_FRACTION``), or not at all, half the anchors'
-    range is the span. On the 20 small-boat yardstick seeds such designations were within
-    2σ for 19 of 26 clicks (short mostly: the anchors on a hull or fender before the quay
-    clicked), those with an anchor inside the template for 270 of 272 (square then)."""
+    """(3,3) covariance along the ray for a click whose anchors (taken from the widened
+    radius) all lie farther from it than half its template's side (``near_click``):
+    nothing the target's tracker follows ties the click to their surface, so it may be
+    theirs or anything on the ray up to where it meets the water (half that span is 1 σ).
+    Where the ray meets the water too far off to bound anything
+    (``WATER_PLANE_MAX_PIXEL_FRACTION``), or not at all, half the anchors' range is the
+    span. On the 20 small-boat yardstick seeds, designations with every anchor outside the
+    template's square were within 2σ for 19 of 26 clicks (short mostly: the anchors on a
+    hull or fender before the quay clicked); its corners are ``near_click``'s figures."""
     u = np.asarray(ray, float) / np.linalg.norm(ray)
     c = np.asarray(camera_ned, float)
     r = float(np.linalg.norm(np.asarray(point, float) - c))

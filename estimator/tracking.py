@@ -735,13 +735,18 @@ EDGE_RANGE_RATIO = 1.5
 EDGE_POINT_SIGMA_FRACTION = 0.25  # structure points this uncertain (σ / range) say nothing
 
 
+def _click_offsets(uv_points: np.ndarray, click_uv: np.ndarray) -> np.ndarray:
+    """(N,2) pixel offsets of ``uv_points`` from the click, +inf where a point is not in
+    view (NaN)."""
+    off = np.asarray(uv_points, float).reshape(-1, 2) - np.asarray(click_uv, float).reshape(2)
+    return np.nan_to_num(off, nan=np.inf)
+
+
 def in_template(uv_points: np.ndarray, click_uv: np.ndarray, half_window_px: float
                 ) -> np.ndarray:
     """Mask of the points (pixels ``uv_points``, NaN when not in view) inside a clicked
     template: within ``half_window_px`` of the click each way."""
-    off = np.abs(np.asarray(uv_points, float).reshape(-1, 2)
-                 - np.asarray(click_uv, float).reshape(2))
-    return np.all(np.nan_to_num(off, nan=np.inf) <= half_window_px, axis=1)
+    return np.all(np.abs(_click_offsets(uv_points, click_uv)) <= half_window_px, axis=1)
 
 
 def near_click(uv_points: np.ndarray, click_uv: np.ndarray, radius_px: float) -> np.ndarray:
@@ -750,8 +755,7 @@ def near_click(uv_points: np.ndarray, click_uv: np.ndarray, radius_px: float) ->
     its square reaches past the click's own surface: on 30 small-boat yardstick seeds,
     designations whose nearest anchor lay 15-21 px from the click (half side 15) were
     beyond 2σ for 4 of 27, those nearer for 7 of 420."""
-    off = np.asarray(uv_points, float).reshape(-1, 2) - np.asarray(click_uv, float).reshape(2)
-    return np.nan_to_num(np.hypot(off[:, 0], off[:, 1]), nan=np.inf) <= radius_px
+    return np.hypot(*_click_offsets(uv_points, click_uv).T) <= radius_px
 
 
 def depth_edge(points_ned: np.ndarray, sigma_m: np.ndarray, uv_points: np.ndarray,
