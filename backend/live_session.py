@@ -19,6 +19,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import queue
 import threading
 import time
@@ -30,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from engine.driver import FusionEngine, dispatch, frame_preparer
-from engine.messages import FrameMessage
+from engine.messages import FrameMessage, ImuMessage
 from estimator.integrity import IntegrityConfig
 from estimator.records import ImuData, NavigationData
 from live.bridge import (
@@ -296,8 +297,26 @@ class LiveRunner:
             now = self.source.aligner.clock.to_gpst(time.monotonic())
             self._lag = 0.0 if now is None else max(0.0, now - msg.t)  # behind the sensors
         self._last_frame = msg
-        self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, True, time.time()),
-                            engine)
+        self._sink.on_frame(FrameResult(msg.index, msg.t, msg.image, fused, True, time.time(),
+                                        self.turned_after(engine, msg.t)), engine)
+
+    def turned_after(self, engine: FusionEngine, t: float) -> tuple[float, float] | None:
+        """(rad, s): how far the ship turned after gpst ``t`` by the gyro samples queued for
+        the engine (received, not yet processed), and over how long; None without any. The
+        bridge's heading is carried on them rather than on the rate of turn at ``t`` (a CI
+        run: 1 s behind at a turn's start, the HDT 1.0° off)."""
+        turn_rate = getattr(engine, "turn_rate", None)
+        if turn_rate is None:
+            return None
+        with self._arrived:
+            gyro = [(m.t, m.gyro) for m in self._queue if isinstance(m, ImuMessage) and m.t > t]
+        turned, last = 0.0, t
+        for ti, g in gyro:
+            rate = turn_rate(g)
+            if rate is None or not math.isfinite(rate) or ti - last > 0.1:
+                break  # no INS yet, or a gap: the rest is the rate of turn's
+            turned, last = turned + rate * (ti - last), ti
+        return (turned, last - t) if last > t else None
 
     def _between_frames(self, engine: FusionEngine, t: float) -> None:
         """The camera silent while the other sensors go on: every ``QUIET_TICK_S``, once the
@@ -366,7 +385,8 @@ class BridgeFeed:
         now = self.now_gpst() if self.now_gpst is not None else None
         ahead = 0.0 if now is None else now - float(result.state.time)
         self.sent += len(self.output.update(bridge_state(result.state, simulated=self.simulated,
-                                                         ahead_s=ahead)))
+                                                         ahead_s=ahead,
+                                                         turned=result.turned_after)))
         self.sent += len(self.output.alerts(bridge_alerts(session.alarms.all(),
                                                           session.start_gpst)))
 

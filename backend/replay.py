@@ -101,6 +101,9 @@ class FrameResult:
     state: Any | None  # FusedState, None while the engine has no solution yet
     live: bool  # False while seeking (computed but not shown)
     processed_wall: float  # time.time() when the engine returned
+    # live, the engine behind the sensors: (rad, s) the ship turned after ``t`` by the gyro
+    # samples already received, and over how long (``LiveRunner.turned_after``)
+    turned_after: tuple[float, float] | None = None
 
 
 class FrameSink(Protocol):

@@ -244,13 +244,16 @@ MAX_AHEAD_S = 1.0
 EARTH_RADIUS_M = 6378137.0
 
 
-def bridge_state(state: Any, *, simulated: bool = False, ahead_s: float = 0.0) -> BridgeState:
+def bridge_state(state: Any, *, simulated: bool = False, ahead_s: float = 0.0,
+                 turned: tuple[float, float] | None = None) -> BridgeState:
     """What the bridge is told of a fused state (``estimator.options.FusedState``).
 
     ``ahead_s``: how long before the sending the state is (its frame's capture, transport and
     processing): its heading, position and time are carried forward on the rate of turn and
     the velocity, so that the bridge gets now's (a user trial: the HDT 0.4 s old, 1.6° behind
-    in a 4°/s turn). Up to ``MAX_AHEAD_S``; 0 for a replay.
+    in a 4°/s turn). Up to ``MAX_AHEAD_S``; 0 for a replay. ``turned``: (rad, s) the gyro
+    measured over the first s of it (``LiveRunner.turned_after``), the rest on the rate of
+    turn: a turn that starts or ends meanwhile is in the samples, not in the rate.
 
     Mode: not trusted by the integrity layer → ``invalid`` (heading fields empty, GGA quality
     0); trusted while coasting on the INS → ``dead-reckoning``; trusted → ``gnss`` (the
@@ -270,6 +273,10 @@ def bridge_state(state: Any, *, simulated: bool = False, ahead_s: float = 0.0) -
     vn, ve, vd = (float(x) for x in state.velocity_ned)
     roll, pitch, yaw = (float(x) for x in state.euler)
     rot = float(state.rate_of_turn)
+    yaw_ahead = rot * dt
+    if turned is not None and dt > 0.0 and all(math.isfinite(x) for x in turned):
+        covered = min(max(turned[1], 0.0), dt)
+        yaw_ahead = turned[0] * covered / max(turned[1], 1e-9) + rot * (dt - covered)
     lat_ahead = lat + math.degrees(vn * dt / EARTH_RADIUS_M)
     lon_ahead = lon + math.degrees(ve * dt / (EARTH_RADIUS_M * max(math.cos(math.radians(lat)),
                                                                      1e-6)))
@@ -277,7 +284,7 @@ def bridge_state(state: Any, *, simulated: bool = False, ahead_s: float = 0.0) -
         time=float(state.time) + dt,
         llh_deg=(lat_ahead, lon_ahead, h - vd * dt),
         velocity_ned=(vn, ve, vd),
-        euler=(roll, pitch, yaw + rot * dt),
+        euler=(roll, pitch, yaw + yaw_ahead),
         rate_of_turn=rot, mode=mode,
         satellites=int(getattr(state.status, "satellites", 0) or 0))
 

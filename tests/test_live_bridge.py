@@ -192,3 +192,49 @@ def test_a_state_is_sent_as_of_now():
     assert bridge_state(state).euler[2] == pytest.approx(math.radians(90.0))
     hdt = NMEAReader.parse(SentenceMaker().heading(now)[0].decode().strip())
     assert float(hdt.headingT) == pytest.approx(91.6, abs=0.05)
+
+
+def test_a_late_state_is_carried_on_the_gyro_samples_already_received(sim_recording):
+    """The engine 1 s behind the sensors as a turn starts (a CI run: the HDT 1.0° off,
+    carried on the rate of turn of its frame): the heading sent is carried on the gyro
+    samples received meanwhile (``LiveRunner.turned_after``), through the real estimator, and
+    matches the recording's truth 1 s later within 0.3°."""
+    import collections
+    import threading
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from backend.live_session import LiveRunner
+    from engine.driver import dispatch
+    from engine.messages import ImuMessage, sensor_messages
+    from estimator.pipeline import Fusion, FusionOptions
+    from live.bridge import bridge_state
+    from recordings.format import load
+
+    rec = load(sim_recording)
+    engine = Fusion(rec.calibration, rec.nav, FusionOptions(use_vo=False))
+    start, done = float(rec.frame_times[0]), -np.inf
+    gyro_errors, rate_errors = [], []
+    for after in (5.6, 6.0, 6.5):  # s into the recording: the boat starts to turn
+        t0 = start + after
+        for msg in sensor_messages(rec, after=done, until=t0, frames=False):
+            dispatch(engine, msg)
+        done = t0
+        state = engine.state()
+        assert state is not None and state.status.phase == "fused"
+        # what the session's queue holds: the next second's IMU samples, not processed
+        queued = [ImuMessage(float(t), rec.imu.gyro[i], rec.imu.accel[i])
+                  for i, t in enumerate(rec.imu.time) if t0 < t <= t0 + 1.0]
+        runner = SimpleNamespace(_arrived=threading.Condition(),
+                                 _queue=collections.deque(queued))
+        turned = LiveRunner.turned_after(runner, engine, state.time)
+        assert turned is not None and turned[1] == pytest.approx(1.0, abs=0.02)
+        truth = math.degrees(float(rec.reference.interpolate(
+            np.array([state.time + 1.0]))[2][0, 2]))
+        for errors, carried in ((gyro_errors, turned), (rate_errors, None)):
+            yaw = math.degrees(bridge_state(state, ahead_s=1.0, turned=carried).euler[2])
+            errors.append(abs((yaw - truth + 180) % 360 - 180))
+    assert max(gyro_errors) < 0.3, gyro_errors
+    # the rate of turn at the frame alone would have been off (the test can fail)
+    assert max(rate_errors) > 0.6, rate_errors
