@@ -161,8 +161,16 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
                 assert time.monotonic() < deadline + 240, "the replay did not end"
                 time.sleep(0.5)
             replay_traj = _trajectory(base, replay["id"])
+            header = None
             if page is not None:
                 page[1].screenshot(path=str(ARTIFACTS / "live-page.png"))
+                header = page[1].evaluate("""() => ({
+                    width: document.documentElement.clientWidth,
+                    night: document.querySelector('#theme').getBoundingClientRect().toJSON(),
+                    chips: [...document.querySelectorAll('.status .chip')]
+                        .filter((c) => !c.hidden)
+                        .map((c) => ({text: c.textContent, rect: c.getBoundingClientRect().toJSON(),
+                                      clipped: c.scrollWidth > c.clientWidth + 1}))})""")
         finally:
             if page is not None:  # else its Playwright loop outlives the fixture, and every
                 page[0].close()  # later page test fails to start its own
@@ -175,6 +183,7 @@ def live_run(sim_recording: Path, tmp_path_factory: pytest.TempPathFactory):
             udp.close()
     yield {"status": status, "quiet": quiet, "live": live_traj, "replay": replay_traj,
            "udp": datagrams, "tcp": bytes(stream), "frames_seen": frames_seen, "work": work,
+           "header": header,
            "recording": sim_recording}
 
 
@@ -246,6 +255,22 @@ def test_page_streams_the_live_session_with_the_record_indicator(live_run):
     assert any(s["rec"] and "REC" in s["rec"] for s in seen), seen[-3:]
     # a live session has nothing to play, pause or seek: no replay controls
     assert not any(s["replay"] for s in seen if s["f"] is not None), seen[-3:]
+    # At the end every sensor is down and the record chip names them all: at 1280 px each
+    # chip is whole and readable, none under the Night button or another chip (it ran under
+    # the button, the failed inputs cut off).
+    header = live_run["header"]
+    rec = [c for c in header["chips"] if "REC" in c["text"]]
+    assert rec and "down" in rec[0]["text"], header["chips"]
+    night = header["night"]
+    for k, chip in enumerate(header["chips"]):
+        r = chip["rect"]
+        assert not chip["clipped"] and 0 <= r["left"] and r["right"] <= header["width"], chip
+        assert r["right"] <= night["left"] or r["top"] >= night["bottom"], (chip, night)
+        for other in header["chips"][k + 1:]:
+            o = other["rect"]
+            apart = (r["right"] <= o["left"] or o["right"] <= r["left"]
+                     or r["bottom"] <= o["top"] or o["bottom"] <= r["top"])
+            assert apart, (chip, other)
 
 
 def test_bridge_nmea_parses_and_agrees(live_run):
