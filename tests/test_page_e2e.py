@@ -1180,12 +1180,23 @@ def test_layout_1280x800(browser, server: str) -> None:
         assert pg.evaluate("() => document.scrollingElement.scrollHeight") <= 800
         assert pg.evaluate("() => document.scrollingElement.scrollWidth") <= 1280
         for sel in ("#video", "#birdseye", "#bow-dist", "#stern-speed", "#hdg", "#rot",
-                    "#targets", "#play", "#seek", "#speed", "#recording", "#theme", "#st-scale"):
+                    "#sog", "#cog", "#targets", "#play", "#seek", "#speed", "#recording",
+                    "#theme", "#st-scale"):
             box = pg.locator(sel).bounding_box()
             assert box and box["width"] > 0 and box["height"] > 0, sel
             assert box["x"] >= 0 and box["y"] >= 0, sel
             assert box["x"] + box["width"] <= 1280 + 1 and box["y"] + box["height"] <= 800 + 1, \
                 (sel, box)
+        # no read-out runs past its own box (the SOG's m/s ran 18 px past the panel's edge,
+        # where a σ after it would be cut off)
+        spill = pg.evaluate("""() => [...document.querySelectorAll('.side .mid, .side .big')]
+            .filter((e) => {
+                const card = e.closest('.card').getBoundingClientRect();
+                const r = e.getBoundingClientRect();
+                return e.scrollWidth > e.clientWidth + 1 || r.right > card.right - 4; })
+            .map((e) => [e.id, e.textContent, e.getBoundingClientRect().right,
+                         e.closest('.card').getBoundingClientRect().right])""")
+        assert not spill, spill
         video = pg.locator("#video").bounding_box()
         assert video["width"] >= 800, "the video stays the largest thing on the screen"
         assert not pg.locator("#st-rec").is_visible(), "a replay is not being recorded"

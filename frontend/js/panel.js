@@ -130,7 +130,7 @@ export class Panel {
     // degrees off: ±σ says so)
     set("hdg", `${pose.heading_deg.toFixed(1)}<span class="unit">°${fmtSigmaDeg(pose.heading_std_deg, 0.05)}</span>`);
     set("sog", `${(pose.speed_mps * KNOTS_PER_MPS).toFixed(2)}<span class="unit">kn</span>`
-      + ` <span class="unit">${pose.speed_mps.toFixed(2)}${pose.speed_std_mps >= 0.005
+      + ` <span class="unit sub">${pose.speed_mps.toFixed(2)}${pose.speed_std_mps >= 0.005
         ? ` ±${pose.speed_std_mps.toFixed(2)}` : ""} m/s</span>`);
     // ROT in degrees per minute, as on a ship's ROT indicator; positive = to starboard
     const rot = pose.rate_of_turn_dps * 60;
