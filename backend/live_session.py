@@ -19,7 +19,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-import math
 import queue
 import threading
 import time
@@ -58,6 +57,9 @@ log = logging.getLogger(__name__)
 FIRST_MESSAGE_TIMEOUT_S = 30.0
 MAX_QUEUED_FRAMES = 4  # 0.4 s of video at 10 fps: beyond, the engine skips frames to keep up
 MAX_UNWRITTEN = 1200  # ~11 s of messages (~190 MB of frames) waiting for a stalled disk
+# The bridge's heading is carried on queued gyro samples no farther apart than this (a gap:
+# the rest on the rate of turn)
+CARRY_MAX_STEP_S = 0.1
 QUIET_TICK_S = 0.5  # no message for this long: the engine is told the time (sensors silent)
 
 
@@ -305,18 +307,20 @@ class LiveRunner:
         the engine (received, not yet processed), and over how long; None without any. The
         bridge's heading is carried on them rather than on the rate of turn at ``t`` (a CI
         run: 1 s behind at a turn's start, the HDT 1.0° off)."""
-        turn_rate = getattr(engine, "turn_rate", None)
-        if turn_rate is None:
+        turn_rates = getattr(engine, "turn_rates", None)
+        if turn_rates is None:
             return None
         with self._arrived:
-            gyro = [(m.t, m.gyro) for m in self._queue if isinstance(m, ImuMessage) and m.t > t]
-        turned, last = 0.0, t
-        for ti, g in gyro:
-            rate = turn_rate(g)
-            if rate is None or not math.isfinite(rate) or ti - last > 0.1:
-                break  # no INS yet, or a gap: the rest is the rate of turn's
-            turned, last = turned + rate * (ti - last), ti
-        return (turned, last - t) if last > t else None
+            imu = [m for m in self._queue if isinstance(m, ImuMessage) and m.t > t]
+        rates = turn_rates(np.array([m.gyro for m in imu])) if imu else None
+        if rates is None:  # none queued, or no INS yet
+            return None
+        times = np.array([t, *(m.t for m in imu)])
+        steps = np.diff(times)
+        # up to the first gap or unusable sample: the rest is the rate of turn's
+        usable = np.isfinite(rates) & (steps <= CARRY_MAX_STEP_S)
+        n = len(usable) if usable.all() else int(np.argmin(usable))
+        return (float(rates[:n] @ steps[:n]), float(times[n] - t)) if n else None
 
     def _between_frames(self, engine: FusionEngine, t: float) -> None:
         """The camera silent while the other sensors go on: every ``QUIET_TICK_S``, once the

@@ -60,9 +60,9 @@ class FusionEngine(Protocol):
 
     def process_vo(self, out: VoOutput) -> None: ...
 
-    # An engine may also have ``turn_rate(gyro)``: a raw gyro sample's rate of turn (rad/s,
+    # An engine may also have ``turn_rates(gyro)``: raw gyro samples' rates of turn (rad/s,
     # bias removed), with which a live session carries the heading it sends to the bridge
-    # over the samples the engine has not reached yet (``Fusion.turn_rate``).
+    # over the samples the engine has not reached yet (``Fusion.turn_rates``).
 
     # An engine may also have ``tick(t)``: no message has come until gpst t (a live feed gone
     # quiet), so that it declares the silence (``Fusion.tick``); a live session calls it.

@@ -177,10 +177,10 @@ class Ins:
     def state(self) -> InsState:
         return self._state.copy()
 
-    def level_yaw_rate(self, gyro: np.ndarray) -> float:
-        """A raw gyro sample's rate about the level down axis (rad/s), its bias not removed
-        (scale factor and misalignment are)."""
-        return float(self._state.C_body_to_level[2] @ (self.gyro_correction @ gyro))
+    def level_yaw_rate(self, gyro: np.ndarray) -> float | np.ndarray:
+        """Raw gyro samples' rate about the level down axis (rad/s; one sample (3,) or
+        several (n, 3)), their bias not removed (scale factor and misalignment are)."""
+        return (self.gyro_correction @ np.asarray(gyro, float).T).T @ self._state.C_body_to_level[2]
 
     @property
     def bias_yaw_rate(self) -> float:

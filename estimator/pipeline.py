@@ -238,13 +238,13 @@ class Fusion:
         drift = np.zeros((3, 3)) if self.carrier is None else self.carrier.drift.cov
         return drift + self.monitor.origin_drift_cov()
 
-    def turn_rate(self, gyro: np.ndarray) -> float | None:
-        """A raw gyro sample's rate of turn (rad/s about the level down axis, the bias the
-        EKF has learned removed): to carry the heading over samples not yet processed."""
+    def turn_rates(self, gyro: np.ndarray) -> np.ndarray | None:
+        """Raw gyro samples' (n, 3) rates of turn (rad/s about the level down axis, the bias
+        the EKF has learned removed): to carry the heading over samples not yet processed."""
         if self.ins is None:
             return None
-        return (self.ins.level_yaw_rate(np.asarray(gyro, float)) - self.ins.bias_yaw_rate
-                - float(self.ins.omega_ie[2]))
+        return (np.asarray(self.ins.level_yaw_rate(np.reshape(gyro, (-1, 3))))
+                - self.ins.bias_yaw_rate - float(self.ins.omega_ie[2]))
 
     def state(self, at: float | None = None) -> FusedState | None:
         """Current fused state (extrapolated to ``at`` when the INS is slightly behind)."""
