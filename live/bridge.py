@@ -208,8 +208,11 @@ class NmeaOutput:
         return True
 
     def update(self, state: BridgeState) -> list[bytes]:
-        """Send the sentences due at ``state.time``; returns them."""
+        """Send the sentences due at ``state.time``; returns them (none for a state without
+        a finite time: nothing could say when it held)."""
         out: list[bytes] = []
+        if not math.isfinite(state.time):
+            return out
         if self._due("heading", state.time):
             out += self.maker.heading(state)
         if self._due("course", state.time):
@@ -255,10 +258,10 @@ def bridge_state(state: Any, *, simulated: bool = False, ahead_s: float = 0.0,
     measured over the first s of it (``LiveRunner.turned_after``), the rest on the rate of
     turn: a turn that starts or ends meanwhile is in the samples, not in the rate.
 
-    Mode: not trusted by the integrity layer → ``invalid`` (heading fields empty, GGA quality
-    0); trusted while coasting on the INS → ``dead-reckoning``; trusted → ``gnss`` (the
-    absolute position is standalone-GNSS anchored: quality 1, never claimed RTK), or
-    ``simulated`` for a replayed recording."""
+    Mode: not trusted by the integrity layer, or any number not finite → ``invalid`` (the
+    sentences' fields empty, GGA quality 0); trusted while coasting on the INS →
+    ``dead-reckoning``; trusted → ``gnss`` (the absolute position is standalone-GNSS
+    anchored: quality 1, never claimed RTK), or ``simulated`` for a replayed recording."""
     integrity = getattr(state.status, "integrity", None)
     if integrity is None or not integrity.trusted:
         mode = "invalid"
@@ -273,6 +276,8 @@ def bridge_state(state: Any, *, simulated: bool = False, ahead_s: float = 0.0,
     vn, ve, vd = (float(x) for x in state.velocity_ned)
     roll, pitch, yaw = (float(x) for x in state.euler)
     rot = float(state.rate_of_turn)
+    if not all(math.isfinite(x) for x in (lat, lon, h, vn, ve, vd, roll, pitch, yaw, rot)):
+        mode = "invalid"  # a damaged state is never sent as trusted, whatever its flags
     yaw_ahead = rot * dt
     if turned is not None and dt > 0.0 and all(math.isfinite(x) for x in turned):
         covered = min(max(turned[1], 0.0), dt)

@@ -77,6 +77,12 @@ class Alert:
     revision: int = 1
 
 
+def _num(x: float, digits: int) -> float | str:
+    """A field's number, or empty when it is not finite: a NaN goes out as "no data", never
+    as the text ``nan`` a bridge display might show or choke on."""
+    return round(x, digits) if math.isfinite(x) else ""
+
+
 def _utc(t_gpst: float, leap_seconds: int) -> datetime:
     return datetime_from_gpst(t_gpst - leap_seconds)
 
@@ -100,40 +106,53 @@ class SentenceMaker:
         return MODES[state.mode]
 
     def heading(self, state: BridgeState) -> list[bytes]:
-        """HDT, THS and ROT."""
+        """HDT, THS and ROT; their fields empty and flagged ``V`` unless the state is valid."""
         indicator, _ = self._mode(state)
+        yaw, rate = state.euler[2], state.rate_of_turn
+        if not (math.isfinite(yaw) and math.isfinite(rate)):
+            indicator = "V"
         valid = indicator != "V"
-        hdg = round(math.degrees(state.euler[2]) % 360.0, 2) % 360.0
-        rot = round(math.degrees(state.rate_of_turn) * 60.0, 1)
+        hdg = round(math.degrees(yaw) % 360.0, 2) % 360.0 if valid else ""
+        rot = round(math.degrees(rate) * 60.0, 1) if valid else ""
         t = self.heading_talker
         return [
-            NMEAMessage(t, "HDT", GET, headingT=hdg if valid else "", headingTu="T").serialize(),
-            NMEAMessage(t, "THS", GET, headt=hdg if valid else "", mi=indicator).serialize(),
-            NMEAMessage(t, "ROT", GET, rot=rot if valid else "",
-                        valid="A" if valid else "V").serialize(),
+            NMEAMessage(t, "HDT", GET, headingT=hdg, headingTu="T").serialize(),
+            NMEAMessage(t, "THS", GET, headt=hdg, mi=indicator).serialize(),
+            NMEAMessage(t, "ROT", GET, rot=rot, valid="A" if valid else "V").serialize(),
         ]
 
     def course_speed(self, state: BridgeState) -> bytes:
+        """VTG; course and speed empty (mode ``N``) unless the state is valid."""
         indicator, _ = self._mode(state)
         vn, ve, _ = state.velocity_ned
         speed = math.hypot(vn, ve)
+        if indicator == "V" or not math.isfinite(speed):
+            return NMEAMessage(self.position_talker, "VTG", GET, cogt="", cogtUnit="T",
+                               cogm="", cogmUnit="M", sogn="", sognUnit="N", sogk="",
+                               sogkUnit="K", posMode="N").serialize()
         cog = round(math.degrees(math.atan2(ve, vn)) % 360.0, 1) % 360.0 \
             if speed >= 0.05 else ""
         return NMEAMessage(self.position_talker, "VTG", GET, cogt=cog, cogtUnit="T", cogm="",
                            cogmUnit="M", sogn=round(speed * MS_TO_KNOTS, 2), sognUnit="N",
                            sogk=round(speed * 3.6, 2), sogkUnit="K",
-                           posMode="N" if indicator == "V" else indicator).serialize()
+                           posMode=indicator).serialize()
 
     def position(self, state: BridgeState) -> bytes:
+        """GGA; position empty (quality 0) unless the state is valid, as a receiver without
+        a fix sends it."""
         _, quality = self._mode(state)
         lat, lon, h = state.llh_deg
+        if not all(math.isfinite(x) for x in (lat, lon, h)):
+            quality = 0
+        valid = quality != 0
         utc = _utc(state.time, self.leap_seconds)
+        hdop = _num(state.hdop, 1) if state.hdop is not None else ""
         return NMEAMessage(
-            self.position_talker, "GGA", GET, hpnmeamode=True, time=utc.time(), lat=lat,
-            NS="N" if lat >= 0 else "S", lon=lon, EW="E" if lon >= 0 else "W",
-            quality=quality, numSV=state.satellites,
-            HDOP=round(state.hdop, 1) if state.hdop is not None else "",
-            alt=round(h - self.geoid_separation_m, 2), altUnit="M",
+            self.position_talker, "GGA", GET, hpnmeamode=True, time=utc.time(),
+            lat=lat if valid else "", NS="N" if not valid or lat >= 0 else "S",
+            lon=lon if valid else "", EW="E" if not valid or lon >= 0 else "W",
+            quality=quality, numSV=state.satellites, HDOP=hdop,
+            alt=round(h - self.geoid_separation_m, 2) if valid else "", altUnit="M",
             sep=round(self.geoid_separation_m, 2), sepUnit="M", diffAge="",
             diffStation="").serialize()
 

@@ -194,6 +194,38 @@ def test_a_state_is_sent_as_of_now():
     assert float(hdt.headingT) == pytest.approx(91.6, abs=0.05)
 
 
+@pytest.mark.parametrize("damage", [
+    {"rate_of_turn": math.nan}, {"euler": (0.0, 0.0, math.inf)},
+    {"llh_deg": (math.nan, 135.215, 40.0)}, {"velocity_ned": (math.nan, 1.0, 0.0)}])
+def test_a_damaged_state_goes_out_invalid_with_empty_fields(udp_receiver, damage):
+    """A fused state with one non-finite number, though its integrity says trusted (a NaN
+    rate of turn went out as ``$HEHDT,nan,T``): every sentence is sent, flagged invalid with
+    its numbers empty, none with the text "nan"; a state without a time sends nothing."""
+    from types import SimpleNamespace
+
+    from live.bridge import bridge_state
+
+    fields = {"time": T, "llh_deg": (34.669, 135.215, 40.0), "velocity_ned": (2.0, 1.0, 0.0),
+              "euler": (0.0, 0.0, math.radians(90.0)), "rate_of_turn": math.radians(4.0)}
+    status = SimpleNamespace(integrity=SimpleNamespace(trusted=True, mode="fused"),
+                             satellites=12)
+    good = bridge_state(SimpleNamespace(**fields, status=status), ahead_s=0.4)
+    assert good.mode == "gnss"
+    state = bridge_state(SimpleNamespace(**{**fields, **damage}, status=status), ahead_s=0.4)
+    assert state.mode == "invalid"
+    sender = Iec450Sender(udp_receiver.getsockname())
+    out = NmeaOutput([sender])
+    sent = out.update(state)
+    assert len(sent) == 6 and not any(b"nan" in s.lower() or b"inf" in s.lower() for s in sent)
+    msgs = {m.msgID: m for _, _, m in parse_datagram(udp_receiver.recvfrom(2000)[0])}
+    assert msgs["HDT"].headingT == "" and msgs["THS"].mi == "V"
+    assert msgs["ROT"].rot == "" and msgs["ROT"].valid == "V"
+    assert msgs["VTG"].sogn == "" and msgs["VTG"].cogt == "" and msgs["VTG"].posMode == "N"
+    assert msgs["GGA"].quality == 0 and msgs["GGA"].lat == "" and msgs["GGA"].alt == ""
+    assert out.update(BridgeState(**{**good.__dict__, "time": math.nan})) == []
+    sender.close()
+
+
 def test_a_late_state_is_carried_on_the_gyro_samples_already_received(sim_recording):
     """The engine 1 s behind the sensors as a turn starts (a CI run: the HDT 1.0° off,
     carried on the rate of turn of its frame): the heading sent is carried on the gyro
