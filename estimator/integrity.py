@@ -23,7 +23,9 @@ Three parts (the concepts of GNSS integrity, thesis-independent; ``docs/referenc
   The horizontal covariance is the filter's plus what the world origin's error has driven:
   the carrier phase's satellite geometry is computed at the standalone fix, metres off, and
   that drifts the trajectory ~0.1 mm/s per metre for as long as it runs
-  (``origin_drift_cov``). The state is
+  (``origin_drift_cov``). Between carrier-phase epochs the HPL also carries the VO
+  sub-solution's separation from the fused position (``vo_coupling``): an INS failing there
+  is bounded by it. The state is
   **trusted** when the mode is usable, no critical fault is active and both levels are within
   their alert limits (default 0.5 m, 1°).
 
@@ -409,10 +411,14 @@ class IntegrityMonitor:
                              f"{self.cfg.video_silent_s:g} s: no VO")
 
     def assess(self, t: float, mode: str, position_cov: np.ndarray | None,
-               heading_var: float | None, drift_scale: float = 1.0) -> Integrity:
+               heading_var: float | None, drift_scale: float = 1.0,
+               separation_m: float = 0.0) -> Integrity:
         """The integrity of a state at ``t``: its mode, protection levels and trust.
         ``drift_scale``: the atmosphere's activity against the quiet day the drift's overbound
-        was fitted on (``cpp.AtmosphereActivity``)."""
+        was fitted on (``cpp.AtmosphereActivity``). ``separation_m``: how far the VO's
+        sub-solution since the last carrier-phase epoch is from the fused position
+        (``vo_coupling``): an INS failing since that epoch is off by no more than it beyond
+        the fault-free bound."""
         cfg = self.cfg
         self.check_streams(max(t, self.last_input))
         if self.is_active("imu-silent"):
@@ -424,7 +430,8 @@ class IntegrityMonitor:
             horizontal = np.asarray(position_cov, float)[:2, :2] + self.origin_drift_cov()[:2, :2]
             major = float(np.linalg.eigvalsh(horizontal)[-1])
             drift = self._drift_bound(t, drift_scale)
-            hpl = cfg.k(2) * math.sqrt(max(major, 0.0)) + cfg.undetected_horizontal_m + drift
+            hpl = cfg.k(2) * math.sqrt(max(major, 0.0)) + cfg.undetected_horizontal_m + drift \
+                + (separation_m if math.isfinite(separation_m) else 0.0)
             hdg = cfg.k(1) * math.degrees(math.sqrt(max(heading_var, 0.0))) \
                 + cfg.undetected_heading_deg
         critical = [a for k, a in self.active.items() if k in CRITICAL]

@@ -320,7 +320,8 @@ class Fusion:
             self.monitor.last_input, _MODE[phase],
             None if ekf is None else ekf.P[ekf.ix.R, ekf.ix.R],
             None if ekf is None else float(ekf.P[ekf.ix.E, ekf.ix.E][2, 2]),
-            1.0 if carrier is None else carrier.activity.scale)
+            1.0 if carrier is None else carrier.activity.scale,
+            self.coupling.separation_m if ekf is not None and ekf.vo is not None else 0.0)
         return FusionStatus(phase=phase, compass_fixed=fixed,
                             satellites=carrier.n_sats if gnss else 0,
                             vo_status=vo_status, scale=scale, scale_converged=converged,
@@ -460,7 +461,9 @@ class Fusion:
             self._timer.add("gnss_update", _time.perf_counter() - t0)
         else:
             self.coupling.update(item.payload, self.ekf,  # type: ignore[arg-type]
-                                 self._timer.add, self.carrier.velocity_held(self.ekf.time))
+                                 self._timer.add, self.carrier.velocity_held(self.ekf.time),
+                                 self.carrier.last_velocity_time
+                                 if self.carrier.carrier_fresh(self.ekf.time) else None)
             self._timer.add("vo_update", _time.perf_counter() - t0)
 
     # -------------------------------------------------------------------- INS start

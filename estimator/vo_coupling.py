@@ -20,6 +20,17 @@ that still disagrees ``VO_RESTART_AFTER_S`` later with the carrier phase behind 
 is not going to agree: its world is wrong while its tracking is fine, so it would never
 reinitialise by itself. It is restarted (``VoCoupling.restart``, taken by ``Fusion``) and its
 new world checked from scratch.
+
+Between two carrier-phase epochs the INS alone carries the position: an accelerometer step
+there was 11 cm off under a 9 cm protection level for the second before the next epoch
+declared it. The VO, which sees it, is loosely weighted in the EKF (its origin drifts), so
+its updates hardly pull it back. Over that second the VO also dead-reckons a sub-solution
+from the first frame after the epoch: that frame's camera position carried by the VO's own
+displacement, mapped as the EKF held it then. Its horizontal separation from the fused
+camera (``separation_m``) goes into the protection level (``IntegrityMonitor.assess``). This
+is the solution separation of fault-detection practice: if the INS fails, the fused error is
+at most the fault-free bound plus the separation. It is a few millimetres while both are
+right.
 """
 
 from __future__ import annotations
@@ -221,15 +232,25 @@ class VoCoupling:
             self.landmarks = LandmarkMap(camera.focal_px, landmarks)
         self._K = np.asarray(camera.K, float)
         self._dist = np.asarray(camera.distortion, float).ravel()
+        # the VO sub-solution since the last carrier-phase epoch (module docstring):
+        # (that epoch's time, segment, VO camera position, fused camera position, the
+        # mapping's rotation and scale) at its first tracked frame after the epoch
+        self._since_carrier: tuple[float, int, np.ndarray, np.ndarray, np.ndarray, float] \
+            | None = None
+        self.separation_m = 0.0  # its horizontal separation from the fused camera (m)
 
     # ---------------------------------------------------------------------------- input
 
     def update(self, out: VoOutput, ekf: ErrorStateEkf,
-               timed: Callable[[str, float], None], carrier_fresh: bool = True) -> None:
+               timed: Callable[[str, float], None], carrier_fresh: bool = True,
+               carrier_time: float | None = None) -> None:
         """One VO output at its time (the INS is there): map a new segment, or update the
         EKF with Θ and d and the landmarks with the views. ``carrier_fresh``: the fused track
         rests on the carrier phase now (a wrong VO world may then be restarted; else the
-        check weighs the coasting track's own velocity σ)."""
+        check weighs the coasting track's own velocity σ). ``carrier_time``: gpst of the
+        last carrier-phase velocity update, where the VO sub-solution starts afresh; None
+        while the carrier phase is stale (coasting, the INS and the VO are weighed by their
+        covariance: no sub-solution)."""
         if out.status != "tracking" or out.C_world_to_camera is None \
                 or out.camera_position_world is None:
             if out.status == "lost":
@@ -244,11 +265,32 @@ class VoCoupling:
         if ekf.vo is None or ekf.vo.segment != out.segment:
             self._start_segment(out, p, ekf)
             return
+        self._separate(out.segment, p, ekf, carrier_time)
         ekf.update_vo(out.C_world_to_camera, p)
         if self.landmarks is not None:
             t0 = _time.perf_counter()
             self._refine_landmarks(out, ekf)
             timed("landmarks", _time.perf_counter() - t0)
+
+    def _separate(self, segment: int, p_world: np.ndarray, ekf: ErrorStateEkf,
+                  carrier_time: float | None) -> None:
+        """Carry the VO sub-solution to this frame (before its update), or start it at the
+        first frame after a carrier-phase epoch or in a new VO world."""
+        vo = ekf.vo
+        assert vo is not None
+        if carrier_time is None:
+            self._since_carrier, self.separation_m = None, 0.0
+            return
+        cam = ekf.camera_position()
+        ref = self._since_carrier
+        if ref is None or ref[0] != carrier_time or ref[1] != segment:
+            self._since_carrier = (carrier_time, segment, p_world.copy(), cam,
+                                   vo.C_world_to_level.copy(), vo.scale)
+            self.separation_m = 0.0
+            return
+        _, _, p0, cam0, C_wl, scale = ref
+        apart = cam0 + scale * (C_wl @ (p_world - p0)) - cam
+        self.separation_m = float(np.hypot(apart[0], apart[1]))
 
     @property
     def excluded(self) -> bool:
