@@ -29,8 +29,8 @@ from the first frame after the epoch: that frame's camera position carried by th
 displacement, mapped as the EKF held it then. Its horizontal separation from the fused
 camera (``separation_m``) goes into the protection level (``IntegrityMonitor.assess``). This
 is the solution separation of fault-detection practice: if the INS fails, the fused error is
-at most the fault-free bound plus the separation. It is a few millimetres while both are
-right.
+at most the fault-free bound plus the separation. While both are right it is millimetres
+once the VO's scale has settled, up to ~10 cm in a new world's first seconds.
 """
 
 from __future__ import annotations
@@ -88,6 +88,19 @@ class VoDisagreement:
     angle_rad: float  # between the VO's and the gyro's rotation / the fused displacement
     window_s: float
     nis: float  # the disagreement² over the variance the EKF's VO model allows
+
+
+@dataclass(frozen=True)
+class _SubSolution:
+    """The VO sub-solution's start (module docstring): its first tracked frame after the
+    carrier-phase epoch at ``carrier_time``, in VO world ``segment``."""
+
+    carrier_time: float
+    segment: int
+    camera_position_world: np.ndarray  # VO units
+    camera_position_ned: np.ndarray  # fused
+    C_world_to_level: np.ndarray  # the EKF's mapping then
+    scale: float
 
 
 @dataclass(frozen=True)
@@ -232,11 +245,7 @@ class VoCoupling:
             self.landmarks = LandmarkMap(camera.focal_px, landmarks)
         self._K = np.asarray(camera.K, float)
         self._dist = np.asarray(camera.distortion, float).ravel()
-        # the VO sub-solution since the last carrier-phase epoch (module docstring):
-        # (that epoch's time, segment, VO camera position, fused camera position, the
-        # mapping's rotation and scale) at its first tracked frame after the epoch
-        self._since_carrier: tuple[float, int, np.ndarray, np.ndarray, np.ndarray, float] \
-            | None = None
+        self._since_carrier: _SubSolution | None = None
         self.separation_m = 0.0  # its horizontal separation from the fused camera (m)
 
     # ---------------------------------------------------------------------------- input
@@ -283,14 +292,14 @@ class VoCoupling:
             return
         cam = ekf.camera_position()
         ref = self._since_carrier
-        if ref is None or ref[0] != carrier_time or ref[1] != segment:
-            self._since_carrier = (carrier_time, segment, p_world.copy(), cam,
-                                   vo.C_world_to_level.copy(), vo.scale)
+        if ref is None or ref.carrier_time != carrier_time or ref.segment != segment:
+            self._since_carrier = _SubSolution(carrier_time, segment, p_world.copy(), cam,
+                                               vo.C_world_to_level.copy(), vo.scale)
             self.separation_m = 0.0
             return
-        _, _, p0, cam0, C_wl, scale = ref
-        apart = cam0 + scale * (C_wl @ (p_world - p0)) - cam
-        self.separation_m = float(np.hypot(apart[0], apart[1]))
+        carried = ref.camera_position_ned + ref.scale * (
+            ref.C_world_to_level @ (p_world - ref.camera_position_world))
+        self.separation_m = float(np.hypot(*(carried - cam)[:2]))
 
     @property
     def excluded(self) -> bool:
