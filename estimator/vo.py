@@ -170,6 +170,54 @@ def sampson_distance(E: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndar
     return num / np.sqrt(np.maximum(den, 1e-30))
 
 
+KEPT_INLIERS = 0.9  # share of RANSAC's inliers its pose must keep, or the refit broke down
+
+
+def locate(X: np.ndarray, xy: np.ndarray, threshold: float, min_points: int,
+           previous: tuple[np.ndarray, np.ndarray] | None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """A tracked frame's pose from the map points ``X`` and their normalised image points
+    ``xy`` (PnP + RANSAC, then Levenberg–Marquardt on the inliers): (C_W^C, t^C), the points
+    in the camera, and which lie in front within ``threshold`` (normalised units); None
+    when fewer than ``min_points`` do. ``previous``: the last frame's pose (C, t), or None.
+
+    RANSAC's own last fit of its inliers (EPnP) breaks down when the map holds points near
+    infinity (a skyline BA has pushed to 10⁶ baselines): small boat 158 lost its VO at 59 s
+    with 379 inliers, none within the threshold of the pose returned, and 23 of its frames
+    did so; a synthetic map of that kind also gets poses that fit the skyline alone, the
+    near points (the translation) cast out. The inliers are right: when the pose returned
+    keeps fewer than ``KEPT_INLIERS`` of them (≥ 0.99 in a sound frame), they are refined
+    from the last frame's pose too, and the pose that keeps more points is taken."""
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(X, xy, np.eye(3), None, iterationsCount=100,
+                                             reprojectionError=threshold, confidence=0.999,
+                                             flags=cv2.SOLVEPNP_AP3P)
+    if not ok or inl is None or len(inl) < min_points:
+        return None
+    inl = inl.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(X[inl], xy[inl], np.eye(3), None, rvec, tvec)
+    best = _reprojected(rvec, tvec, X, xy, threshold)
+    if best[3].sum() < KEPT_INLIERS * len(inl) and previous is not None:
+        rvec, tvec = cv2.solvePnPRefineLM(X[inl], xy[inl], np.eye(3), None,
+                                          cv2.Rodrigues(previous[0])[0],
+                                          np.asarray(previous[1], float).reshape(3, 1).copy())
+        other = _reprojected(rvec, tvec, X, xy, threshold)
+        if other[3].sum() > best[3].sum():
+            best = other
+    return best if best[3].sum() >= min_points else None
+
+
+def _reprojected(rvec: np.ndarray, tvec: np.ndarray, X: np.ndarray, xy: np.ndarray,
+                 threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A PnP pose as (C_W^C, t^C), the points in the camera and which of them lie in front
+    and reproject within ``threshold`` (normalised units) of ``xy``."""
+    C = cv2.Rodrigues(rvec)[0]
+    t = tvec.ravel()
+    Xc = X @ C.T + t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(Xc[:, :2] / Xc[:, 2:] - xy, axis=1)
+    return C, t, Xc, (Xc[:, 2] > 0) & (err < threshold)
+
+
 def triangulate(C0: np.ndarray, t0: np.ndarray, C1: np.ndarray, t1: np.ndarray,
                 xy0: np.ndarray, xy1: np.ndarray) -> np.ndarray:
     """Linear (DLT) triangulation of normalised points seen from poses (C_W^C, t^C)."""
@@ -1207,21 +1255,10 @@ class VisualOdometry:
         obj = self._map.xyz[row[mapped]]
         img = tr.xy[mapped]
         thr = p.pnp_threshold_px / self._focal
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, np.eye(3), None, iterationsCount=100,
-                                                 reprojectionError=thr, confidence=0.999,
-                                                 flags=cv2.SOLVEPNP_AP3P)
-        if not ok or inl is None or len(inl) < p.min_tracked:
+        located = locate(obj, img, thr, p.min_tracked, self._pose)
+        if located is None:
             return self._lose(time, detect)
-        inl = inl.ravel()
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], np.eye(3), None, rvec, tvec)
-        C = cv2.Rodrigues(rvec)[0]
-        t = tvec.ravel()
-        Xc = obj @ C.T + t
-        with np.errstate(divide="ignore", invalid="ignore"):
-            err = np.linalg.norm(Xc[:, :2] / Xc[:, 2:] - img, axis=1)
-        good = (Xc[:, 2] > 0) & (err < thr)
-        if good.sum() < p.min_tracked:
-            return self._lose(time, detect)
+        C, t, Xc, good = located
         # Map points off their reprojection move with the water / a boat, or were mistracked.
         keep = np.ones(len(tr), bool)
         keep[mapped[~good]] = False

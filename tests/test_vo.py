@@ -16,6 +16,7 @@ from estimator.records import CameraCalibration
 from estimator.vo import (
     VisualOdometry,
     bundle_adjust,
+    locate,
     relative_pose,
     to_full_pixels,
     triangulate,
@@ -148,6 +149,38 @@ def test_triangulation_and_cheirality():
     behind = -X  # same image points, but behind both cameras' centres
     front_b, _, _ = triangulation_quality(behind, C0, t0, C1, t1, xy(C0, t0, X), xy(C1, t1, X))
     assert not front_b.any()
+
+
+def test_a_frame_is_located_on_a_map_with_a_skyline_near_infinity():
+    """A map of 250 quay points 10–50 units away and 130 skyline points the BA has pushed
+    to 10⁴–10⁶ units (small boat 158 at 59 s): OpenCV's RANSAC finds the inliers but its
+    last EPnP fit of them is wrong in most frames (none of the points within the threshold:
+    the VO was lost). ``locate`` then refines the inliers from the last frame's pose, and
+    every frame is located to the truth."""
+    rng = np.random.default_rng(0)
+    f_px, thr = 800.0, 1.5 / 800.0
+    broken = 0
+    for k in range(40):
+        near = np.column_stack([rng.uniform(-20, 20, 250), rng.uniform(-3, 1, 250),
+                                rng.uniform(10, 50, 250)])
+        d = 10 ** rng.uniform(4, 6.2, 130)
+        az, el = rng.uniform(-0.5, 0.5, 130), rng.uniform(-0.05, 0.15, 130)
+        X = np.vstack([near, np.column_stack([d * np.sin(az), -d * np.sin(el), d * np.cos(az)])])
+        C = rotvec_to_dcm(np.array([0.01, 0.3 + 0.01 * k, 0.0]))
+        t = np.array([-3.0, 0.3, -17.0])
+        Xc = X @ C.T + t
+        xy = Xc[:, :2] / Xc[:, 2:] + rng.normal(0.0, 0.3 / f_px, (len(X), 2))
+        # the last frame's pose: 0.1 s of the ship's motion earlier
+        previous = (rotvec_to_dcm(np.array([0.0, -0.004, 0.0])) @ C, t + [0.02, 0.0, -0.08])
+        located = locate(X, xy, thr, 30, previous)
+        assert located is not None, k
+        C_found, t_found, _Xc, good = located
+        assert good.sum() >= 0.95 * np.sum(Xc[:, 2] > 0), k  # (of those in front)
+        assert np.degrees(np.linalg.norm(dcm_to_rotvec(C_found @ C.T))) < 0.01, k
+        np.testing.assert_allclose(t_found, t, atol=0.005)
+        broken += locate(X, xy, thr, 30, None) is None
+    # (the scenes do hit the breakdown: without the last pose many frames are lost)
+    assert broken >= 10
 
 
 def test_umeyama_alignment_recovers_similarity():
