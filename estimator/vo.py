@@ -171,6 +171,10 @@ def sampson_distance(E: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndar
 
 
 KEPT_INLIERS = 0.9  # share of RANSAC's inliers its pose must keep, or the refit broke down
+# The world's unit is its first baseline, taken at a median parallax of 0.7° or more (the
+# scene within ~80 units), and no point is triangulated under 0.5°: a point farther than this
+# is one the BA has pushed out along its ray (a skyline), and it fixes no translation.
+FAR_DEPTH = 1000.0
 
 
 def locate(X: np.ndarray, xy: np.ndarray, threshold: float, min_points: int,
@@ -181,19 +185,26 @@ def locate(X: np.ndarray, xy: np.ndarray, threshold: float, min_points: int,
     in the camera, and which lie in front within ``threshold`` (normalised units); None
     when fewer than ``min_points`` do. ``previous``: the last frame's pose (C, t), or None.
 
-    RANSAC's own last fit of its inliers (EPnP) breaks down when the map holds points near
-    infinity (a skyline BA has pushed to 10⁶ baselines): small boat 158 lost its VO at 59 s
-    with 379 inliers, none within the threshold of the pose returned, and 23 of its frames
-    did so; a synthetic map of that kind also gets poses that fit the skyline alone, the
-    near points (the translation) cast out. The inliers are right: when the pose returned
-    keeps fewer than ``KEPT_INLIERS`` of them (≥ 0.99 in a sound frame), they are refined
-    from the last frame's pose too, and the pose that keeps more points is taken."""
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(X, xy, np.eye(3), None, iterationsCount=100,
-                                             reprojectionError=threshold, confidence=0.999,
-                                             flags=cv2.SOLVEPNP_AP3P)
+    Points near infinity (a skyline BA has pushed to 10⁶ baselines) break the RANSAC two
+    ways. A few of them break its own last fit of the inliers (EPnP): small boat 158 lost
+    its VO at 59 s with 379 inliers, none within the threshold of the pose returned. The
+    inliers are right: when the pose returned keeps fewer than ``KEPT_INLIERS`` of them
+    (≥ 0.97 in a sound frame), they are refined from the last frame's pose too, and the pose
+    that keeps more points is taken. When they are most of the map, a sample of them alone
+    wins with any translation (80 quay points under a skyline of 300: 36 of 40 frames metres
+    off): then only the points within ``FAR_DEPTH`` are sampled, and the far ones join the
+    inliers afterwards (they still fix the rotation in the refinement)."""
+    near = _near(X, previous)
+    sample = slice(None) if near is None else near
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(X[sample], xy[sample], np.eye(3), None,
+                                             iterationsCount=100, reprojectionError=threshold,
+                                             confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
     if not ok or inl is None or len(inl) < min_points:
         return None
-    inl = inl.ravel()
+    inl = inl.ravel() if near is None else \
+        np.flatnonzero(_reprojected(rvec, tvec, X, xy, threshold)[3])
+    if len(inl) < min_points:
+        return None
     rvec, tvec = cv2.solvePnPRefineLM(X[inl], xy[inl], np.eye(3), None, rvec, tvec)
     best = _reprojected(rvec, tvec, X, xy, threshold)
     if best[3].sum() < KEPT_INLIERS * len(inl) and previous is not None:
@@ -204,6 +215,16 @@ def locate(X: np.ndarray, xy: np.ndarray, threshold: float, min_points: int,
         if other[3].sum() > best[3].sum():
             best = other
     return best if best[3].sum() >= min_points else None
+
+
+def _near(X: np.ndarray, previous: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray | None:
+    """Indices of the map points within ``FAR_DEPTH`` of the last frame's camera when the
+    farther ones are at least half the map and at least four are not; else None."""
+    if previous is None:
+        return None
+    z = X @ np.asarray(previous[0])[2] + np.ravel(previous[1])[2]
+    near = np.flatnonzero(z < FAR_DEPTH)
+    return near if 4 <= len(near) <= len(X) // 2 else None
 
 
 def _reprojected(rvec: np.ndarray, tvec: np.ndarray, X: np.ndarray, xy: np.ndarray,
