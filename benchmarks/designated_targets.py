@@ -2,7 +2,10 @@
 whose distance is within tolerance (max(0.1 m, 1 %)) and within 2σ, per recording and their
 worst and median, with each click's median error; and the image track's honesty: the share
 of in-view frames tracked and the frames said "tracking" while the target is more than 10 px
-away or out of the image (undetected losses).
+away or out of the image (undetected losses). The frames beyond 2σ are put down to their
+cause (``evaluation.tracking.BEYOND_2_SIGMA_CAUSES``: the track lost unnoticed, the click's
+designation already beyond its 2σ, the point its track back gave at the click, the views
+since), summed over the recordings, and the clicks with most of them are listed.
 
     .venv/bin/python benchmarks/designated_targets.py RECORDING [RECORDING ...]
         [--json OUT.json]
@@ -27,7 +30,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from evaluation.report import MAIN, ReportOptions, evaluate  # noqa: E402
-from evaluation.tracking import DESIGNATED  # noqa: E402
+from evaluation.tracking import BEYOND_2_SIGMA_CAUSES, DESIGNATED  # noqa: E402
 from recordings.format import load  # noqa: E402
 
 # The replay report trimmed to the designated targets: its main fusion (needed for the
@@ -51,8 +54,15 @@ def evaluate_recording(path: Path) -> dict:
             "median_m": scores.distance_m.median,
             "tracked_fraction": scores.tracked_fraction,
             "undetected_loss_frames": scores.undetected_loss_frames,
+            "beyond_2_sigma": scores.beyond_2_sigma,
             "per_click_median_m": [
                 (c.label, c.per_method[DESIGNATED].distance_error_median_m)
+                for c in report.clicks if c.per_method],
+            "per_click_beyond_2_sigma": [
+                {"click": c.click, "t_s": c.t_s, "method": c.method,
+                 "designation_error_m": c.designation_error_m,
+                 "designation_sigma_m": c.designation_sigma_m,
+                 **(c.per_method[DESIGNATED].beyond_2_sigma or {})}
                 for c in report.clicks if c.per_method]}
 
 
@@ -96,6 +106,20 @@ def main() -> None:
                                              "worst_recording": worst}
         print(f"undetected_loss_frames: {sum(undetected)} in all, worst {max(undetected)} "
               f"({worst})")
+    causes = {k: sum((r.get("beyond_2_sigma") or {}).get(k, 0) for r in scored)
+              for k in BEYOND_2_SIGMA_CAUSES}
+    summary["beyond_2_sigma"] = causes
+    print(f"frames beyond 2σ: {sum(causes.values())} in all, by cause: "
+          + ", ".join(f"{k} {v}" for k, v in causes.items()))
+    worst_clicks = sorted(((sum(c.get(k, 0) for k in BEYOND_2_SIGMA_CAUSES), r["recording"], c)
+                           for r in scored for c in r["per_click_beyond_2_sigma"]),
+                          key=lambda x: -x[0])
+    for n, rec, c in [w for w in worst_clicks if w[0]][:8]:
+        cause = max(BEYOND_2_SIGMA_CAUSES, key=lambda k: c.get(k, 0))
+        e, sg = c["designation_error_m"], c["designation_sigma_m"]
+        print(f"  {rec} click {c['click']} at {c['t_s']:.0f} s ({c['method']}): {n} frames, "
+              f"mostly {cause}; designated {e:+.2f} m ±{sg:.2f}" if e is not None else
+              f"  {rec} click {c['click']}: {n} frames, mostly {cause}")
     if args.json:
         args.json.write_text(json.dumps({"rows": rows, "summary": summary}, indent=1))
 

@@ -847,6 +847,20 @@ def range_with_sigma(point_ned: np.ndarray, covariance: np.ndarray, camera_ned: 
     return d, float(np.sqrt(max(float(u @ np.asarray(covariance, float) @ u), 0.0)))
 
 
+def with_edge_span(point_ned: np.ndarray, covariance: np.ndarray, camera_ned: np.ndarray,
+                   edge_span_m: tuple[float, float] | None) -> np.ndarray:
+    """A clicked point's covariance as the officer reads it: on a depth edge (``depth_edge``:
+    (nearest, farthest) range) with half the edge's span added along the line of sight from
+    ``camera_ned`` (either surface within 2σ)."""
+    P = np.asarray(covariance, float)
+    if edge_span_m is None:
+        return P
+    u = np.asarray(point_ned, float) - np.asarray(camera_ned, float)
+    u = u / max(float(np.linalg.norm(u)), 1e-9)
+    near, far = edge_span_m
+    return P + (0.5 * (far - near)) ** 2 * np.outer(u, u)
+
+
 class DesignatedTarget:
     """A clicked point: its image track (``TargetTracker``) and its 3-D point, one landmark
     EKF (``estimator.landmarks``) fed with every tracked view and the fused camera pose. The
@@ -936,15 +950,9 @@ class DesignatedTarget:
         return self.map.P[0] + self.map.floor[0]
 
     def reported_covariance(self, view: CameraView) -> np.ndarray:
-        """The covariance the officer reads: the point's, and on a depth edge half the
-        edge's span along the line of sight from ``view`` (either surface within 2σ)."""
-        P = self.covariance
-        if self.edge_span_m is None:
-            return P
-        u = self.position_ned - np.asarray(view.position_ned, float)
-        u = u / max(float(np.linalg.norm(u)), 1e-9)
-        near, far = self.edge_span_m
-        return P + (0.5 * (far - near)) ** 2 * np.outer(u, u)
+        """The covariance the officer reads: ``with_edge_span`` of the point's."""
+        return with_edge_span(self.position_ned, self.covariance, view.position_ned,
+                              self.edge_span_m)
 
     def distance(self, view: CameraView, reported: np.ndarray | None = None
                  ) -> tuple[float, float]:

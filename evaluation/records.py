@@ -220,6 +220,8 @@ class MethodScores:
     distance_m_all_frames: DistanceScores | None = None
     distance_within_2_sigma: float | None = None  # share of frames with |error| ≤ 2σ
     distance_error_median_m: float | None = None  # (per click)
+    # tracked frames beyond 2σ by cause (``tracking.BEYOND_2_SIGMA_CAUSES``)
+    beyond_2_sigma: dict[str, int] | None = None
     range_m: list[float] | None = None  # (per click)
 
 
@@ -240,6 +242,10 @@ class ClickResult:
     # (``tracking.error_sources``): what limits it. m, signed, and the true range;
     # None when never refined.
     error_sources: dict[str, float] | None = None
+    # The designated point at the click frame, before any view: its distance − the true
+    # one (m) and its σ as the officer reads it.
+    designation_error_m: float | None = None
+    designation_sigma_m: float | None = None
     skipped: str | None = None
 
 

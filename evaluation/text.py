@@ -195,6 +195,10 @@ def format_tracking_report(tracking: TrackingReport, landmarks: LandmarkReport |
                      f"{f(late.median, '.3f')} m p90 {f(late.p90, '.2f')} m, within tol "
                      f"{f(late.within_tolerance, '.0%')}; |error| ≤ 2σ in "
                      f"{f(d.distance_within_2_sigma, '.0%')} of the frames")
+    beyond = d.beyond_2_sigma if d is not None else None
+    if beyond is not None and sum(beyond.values()):
+        lines.append(f"  designated, frames beyond 2σ ({sum(beyond.values())}) by cause: "
+                     + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in beyond.items()))
     shares = error_source_shares(tracking.clicks)
     if shares is not None:
         lines.append(f"  what limits it ({shares['clicks']:.0f} refined clicks within tol at "

@@ -17,6 +17,13 @@ the image). Distance error = the target's distance (fused camera → its 3-D poi
 distance (true camera → the true scene point); tolerance ``max(10 cm, 1 % of the range)``.
 ``fixed_point`` is the distance of the point designated at the click without any image
 tracking afterwards.
+
+A tracked frame whose distance is beyond 2σ is put down to the first of
+(``BEYOND_2_SIGMA_CAUSES``): ``track_lost`` — the image track is an undetected loss there;
+``designation`` — the click's point was already beyond 2σ of its own σ at the click, before
+any view (the structure points under it, or the water plane); ``click_views`` — the target's
+first tracked frame was beyond 2σ (the point its template tracked back gave at the click);
+``later_views`` — the rest, the views since.
 """
 
 from __future__ import annotations
@@ -39,7 +46,14 @@ from engine.targets import (
     target_window,
 )
 from estimator.landmarks import triangulate_point
-from estimator.tracking import METHODS, DesignatedTarget, TargetParams, TargetTracker
+from estimator.tracking import (
+    METHODS,
+    DesignatedTarget,
+    TargetParams,
+    TargetTracker,
+    range_with_sigma,
+    with_edge_span,
+)
 from recordings.format import Recording
 
 from .records import ClickResult, DistanceBand, DistanceScores, MethodScores, TrackingReport
@@ -56,6 +70,7 @@ DESIGNATED = "designated"  # the server's path: FollowedTarget (tracker + 3-D po
 EVAL_METHODS = (DESIGNATED, *METHODS)
 FRAME_RATE_HZ = 10.0  # for "seconds since the click" (the recordings' frame rate)
 SETTLED_S = 5.0  # distance figures also given from this long after the click
+BEYOND_2_SIGMA_CAUSES = ("track_lost", "designation", "click_views", "later_views")
 
 
 @dataclass
@@ -109,10 +124,13 @@ def evaluate_tracking(rec: Recording, run: FusionRun, clicks: list[Click],
         return TrackingReport(clicks=[f.result for f in followed],
                               reason="no click could be scored")
     wall = _follow(rec, run, truth, projector, active, progress)
-    scores = {m: _method_scores([f.rows[m] for f in active], sum(f.seconds[m] for f in active))
+    off = [_designation_beyond_2_sigma(f.result) for f in active]
+    scores = {m: _method_scores([f.rows[m] for f in active], sum(f.seconds[m] for f in active),
+                                designation_off=off)
               for m in methods}
-    for f in active:
-        f.result.per_method = {m: _method_scores([f.rows[m]], f.seconds[m], brief=True)
+    for f, o in zip(active, off, strict=True):
+        f.result.per_method = {m: _method_scores([f.rows[m]], f.seconds[m], brief=True,
+                                                 designation_off=[o])
                                for m in methods}
         target = f.trackers.get(DESIGNATED)
         if target is not None:
@@ -151,6 +169,12 @@ def _designated(rec: Recording, run: FusionRun, truth: Truth, projector: Project
         result.skipped = str(exc)
         return _Followed(result, -1, None)
     result.point, result.method, result.support_points = j, des.method, len(des.anchor_ids)
+    d, sigma = range_with_sigma(des.position_ned, with_edge_span(
+        des.position_ned, des.covariance, view.position_ned, des.edge_span_m),
+        view.position_ned)
+    result.designation_error_m = d - float(np.linalg.norm(np.asarray(rec.scene_points[j], float)
+                                                          - truth.position[k]))
+    result.designation_sigma_m = sigma
     result.true_point_ned = np.asarray(rec.scene_points[j], float).tolist()
     return _Followed(result, j, des, rows={m: [] for m in methods},
                      seconds={m: 0.0 for m in methods})
@@ -304,8 +328,33 @@ def _distance_scores(err: np.ndarray, rng: np.ndarray) -> DistanceScores:
     return out
 
 
-def _method_scores(rows: list[list[_Row]], seconds: float, brief: bool = False
-                   ) -> MethodScores:
+def _designation_beyond_2_sigma(click: ClickResult) -> bool:
+    e, s = click.designation_error_m, click.designation_sigma_m
+    return e is not None and s is not None and abs(e) > 2.0 * s
+
+
+def _beyond_2_sigma(rows: list[list[_Row]], designation_off: Sequence[bool]) -> dict[str, int]:
+    """Tracked frames beyond 2σ by cause (module docstring), over the clicks' ``rows``;
+    ``designation_off``: whether each click's designation was beyond its own 2σ."""
+    out = dict.fromkeys(BEYOND_2_SIGMA_CAUSES, 0)
+    for rs, designation in zip(rows, designation_off, strict=True):
+        scored = [r for r in rs if r.tracking and math.isfinite(r.distance_error)
+                  and math.isfinite(r.distance_sigma) and r.distance_sigma > 0]
+        if not scored:
+            continue
+        first = abs(scored[0].distance_error) > 2.0 * scored[0].distance_sigma
+        for r in scored:
+            if abs(r.distance_error) <= 2.0 * r.distance_sigma:
+                continue
+            lost = not r.in_view or not r.px_error <= LOSS_PX  # NaN: no truth to follow
+            cause = "track_lost" if lost else "designation" if designation else \
+                "click_views" if first else "later_views"
+            out[cause] += 1
+    return out
+
+
+def _method_scores(rows: list[list[_Row]], seconds: float, brief: bool = False,
+                   designation_off: Sequence[bool] | None = None) -> MethodScores:
     flat = [r for rs in rows for r in rs]
     tracking = np.array([r.tracking for r in flat], bool)
     in_view = np.array([r.in_view for r in flat], bool)
@@ -327,6 +376,8 @@ def _method_scores(rows: list[list[_Row]], seconds: float, brief: bool = False
     rng = np.array([r.true_range for r in flat], float)
     if not np.isfinite(d).any():
         return out
+    if designation_off is not None:
+        out.beyond_2_sigma = _beyond_2_sigma(rows, designation_off)
     if brief:
         out.distance_error_median_m = float(np.median(np.abs(d[tracking]))) \
             if tracking.any() else None

@@ -630,7 +630,7 @@ def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
     from evaluation.records import to_json
     from evaluation.runs import Collect, fuse
     from evaluation.text import format_tracking_report
-    from evaluation.tracking import error_source_shares, evaluate_tracking
+    from evaluation.tracking import BEYOND_2_SIGMA_CAUSES, error_source_shares, evaluate_tracking
     from evaluation.truth import Click
     from recordings.format import load
 
@@ -671,6 +671,18 @@ def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
     assert all(np.isfinite(v) for v in src.values()), src
     shares = error_source_shares(typed.clicks)
     assert shares is not None and shares["true_both"] == 1.0 and shares["clicks"] == 1.0
+    # the designation as the officer read it at the click, scored against the truth: on a
+    # converged structure point, within its 2σ; the frames beyond 2σ all have a cause, as
+    # many as the share within 2σ leaves
+    c0 = typed.clicks[0]
+    assert c0.designation_sigma_m is not None and c0.designation_sigma_m > 0
+    assert abs(c0.designation_error_m) <= 2 * c0.designation_sigma_m
+    beyond = typed.methods["designated"].beyond_2_sigma
+    n_sigma = typed.methods["designated"].distance_m.n
+    assert beyond is not None and set(beyond) == set(BEYOND_2_SIGMA_CAUSES)
+    assert sum(beyond.values()) == round(
+        (1 - typed.methods["designated"].distance_within_2_sigma) * n_sigma)
+    assert c0.per_method["designated"].beyond_2_sigma == beyond  # the one click's
     lm_typed = evaluate_landmarks(rec, run_)
     lm = to_json(lm_typed)
     assert lm["points"] > 0 and lm["scene_point_match"]["raw"]["points"] > 0
@@ -679,6 +691,33 @@ def test_evaluation_smoke_on_the_simulated_recording(sim_recording):
     assert views == sorted(views)
     text = format_tracking_report(typed, lm_typed)
     assert "Designated-target tracking" in text and "with the true pixels" in text
+
+
+def test_frames_beyond_two_sigma_are_put_down_to_their_cause():
+    """Four clicks of hand-made frames, each beyond 2σ for its own reason: an undetected
+    loss (12 px off while "tracking") counts as the track lost whatever else holds; a click
+    designated beyond its own 2σ as the designation; a target beyond 2σ from its first
+    tracked frame (its track back) as the click's views; one that goes beyond 2σ later as
+    the later views. Frames within 2σ, lost or without a σ count nowhere."""
+    from evaluation.tracking import _beyond_2_sigma, _Row
+
+    def row(err_m: float, px: float = 0.5, tracking: bool = True, sigma: float = 0.1) -> _Row:
+        return _Row(frame=0, tracking=tracking, in_view=True, px_error=px,
+                    distance_error=err_m, true_range=10.0, fixed_error=0.0, reacquired=False,
+                    guess_px_error=px, since_click_s=0.0, distance_sigma=sigma)
+
+    clicks = [
+        [row(0.05), row(0.5, px=12.0), row(0.05)],  # a slide nobody noticed
+        [row(0.5), row(0.5), row(0.5, tracking=False)],  # designated 5σ off
+        [row(0.3), row(0.3), row(0.05), row(0.3, sigma=math.nan)],  # off from its first view
+        [row(0.05), row(0.05), row(0.4), row(0.4)],  # slid off later, unnoticed by its σ
+    ]
+    out = _beyond_2_sigma(clicks, [False, True, False, False])
+    assert out == {"track_lost": 1, "designation": 2, "click_views": 2, "later_views": 2}
+    # the same frames with every designation within its σ: the second click's first frame
+    # is beyond 2σ, so its frames are the click's views'
+    out = _beyond_2_sigma(clicks, [False] * 4)
+    assert out == {"track_lost": 1, "designation": 0, "click_views": 4, "later_views": 2}
 
 
 def test_a_common_attitude_error_moves_the_triangulated_point():
