@@ -18,7 +18,7 @@ distance (true camera → the true scene point); tolerance ``max(10 cm, 1 % of t
 ``fixed_point`` is the distance of the point designated at the click without any image
 tracking afterwards.
 
-A tracked frame whose distance is beyond 2σ is put down to the first of
+A tracked frame whose distance is beyond 2σ is put down to the first cause that applies
 (``BEYOND_2_SIGMA_CAUSES``): ``track_lost`` — the image track is an undetected loss there;
 ``designation`` — the click's point was already beyond 2σ of its own σ at the click, before
 any view (the structure points under it, or the water plane); ``click_views`` — the target's
