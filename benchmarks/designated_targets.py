@@ -116,10 +116,12 @@ def main() -> None:
                           key=lambda x: -x[0])
     for n, rec, c in [w for w in worst_clicks if w[0]][:8]:
         cause = max(BEYOND_2_SIGMA_CAUSES, key=lambda k: c.get(k, 0))
-        e, sg = c["designation_error_m"], c["designation_sigma_m"]
-        print(f"  {rec} click {c['click']} at {c['t_s']:.0f} s ({c['method']}): {n} frames, "
-              f"mostly {cause}; designated {e:+.2f} m ±{sg:.2f}" if e is not None else
-              f"  {rec} click {c['click']}: {n} frames, mostly {cause}")
+        line = f"  {rec} click {c['click']} at {c['t_s']:.0f} s ({c['method']}): {n} frames, " \
+               f"mostly {cause}"
+        if c["designation_error_m"] is not None:
+            line += f"; designated {c['designation_error_m']:+.2f} m " \
+                    f"±{c['designation_sigma_m']:.2f}"
+        print(line)
     if args.json:
         args.json.write_text(json.dumps({"rows": rows, "summary": summary}, indent=1))
 

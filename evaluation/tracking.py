@@ -124,13 +124,13 @@ def evaluate_tracking(rec: Recording, run: FusionRun, clicks: list[Click],
         return TrackingReport(clicks=[f.result for f in followed],
                               reason="no click could be scored")
     wall = _follow(rec, run, truth, projector, active, progress)
-    off = [_designation_beyond_2_sigma(f.result) for f in active]
+    designation_off = [_designation_beyond_2_sigma(f.result) for f in active]
     scores = {m: _method_scores([f.rows[m] for f in active], sum(f.seconds[m] for f in active),
-                                designation_off=off)
+                                designation_off=designation_off)
               for m in methods}
-    for f, o in zip(active, off, strict=True):
+    for f, off in zip(active, designation_off, strict=True):
         f.result.per_method = {m: _method_scores([f.rows[m]], f.seconds[m], brief=True,
-                                                 designation_off=[o])
+                                                 designation_off=[off])
                                for m in methods}
         target = f.trackers.get(DESIGNATED)
         if target is not None:
@@ -169,13 +169,13 @@ def _designated(rec: Recording, run: FusionRun, truth: Truth, projector: Project
         result.skipped = str(exc)
         return _Followed(result, -1, None)
     result.point, result.method, result.support_points = j, des.method, len(des.anchor_ids)
+    Xt = np.asarray(rec.scene_points[j], float)
     d, sigma = range_with_sigma(des.position_ned, with_edge_span(
         des.position_ned, des.covariance, view.position_ned, des.edge_span_m),
         view.position_ned)
-    result.designation_error_m = d - float(np.linalg.norm(np.asarray(rec.scene_points[j], float)
-                                                          - truth.position[k]))
+    result.designation_error_m = d - float(np.linalg.norm(Xt - truth.position[k]))
     result.designation_sigma_m = sigma
-    result.true_point_ned = np.asarray(rec.scene_points[j], float).tolist()
+    result.true_point_ned = Xt.tolist()
     return _Followed(result, j, des, rows={m: [] for m in methods},
                      seconds={m: 0.0 for m in methods})
 
@@ -333,23 +333,32 @@ def _designation_beyond_2_sigma(click: ClickResult) -> bool:
     return e is not None and s is not None and abs(e) > 2.0 * s
 
 
+def _undetected(tracking: np.ndarray, in_view: np.ndarray, px_error: np.ndarray
+                ) -> np.ndarray:
+    """Mask of the undetected losses: said "tracking" with the point out of the image or
+    more than ``LOSS_PX`` from the truth (NaN: no truth to follow)."""
+    return tracking & (~in_view | (np.nan_to_num(px_error, nan=np.inf) > LOSS_PX))
+
+
 def _beyond_2_sigma(rows: list[list[_Row]], designation_off: Sequence[bool]) -> dict[str, int]:
     """Tracked frames beyond 2σ by cause (module docstring), over the clicks' ``rows``;
     ``designation_off``: whether each click's designation was beyond its own 2σ."""
     out = dict.fromkeys(BEYOND_2_SIGMA_CAUSES, 0)
     for rs, designation in zip(rows, designation_off, strict=True):
-        scored = [r for r in rs if r.tracking and math.isfinite(r.distance_error)
-                  and math.isfinite(r.distance_sigma) and r.distance_sigma > 0]
-        if not scored:
+        err, sig = (np.array([getattr(r, a) for r in rs], float)
+                    for a in ("distance_error", "distance_sigma"))
+        tracking = np.array([r.tracking for r in rs], bool)
+        scored = np.flatnonzero(tracking & np.isfinite(err) & np.isfinite(sig) & (sig > 0))
+        if not len(scored):
             continue
-        first = abs(scored[0].distance_error) > 2.0 * scored[0].distance_sigma
-        for r in scored:
-            if abs(r.distance_error) <= 2.0 * r.distance_sigma:
-                continue
-            lost = not r.in_view or not r.px_error <= LOSS_PX  # NaN: no truth to follow
-            cause = "track_lost" if lost else "designation" if designation else \
-                "click_views" if first else "later_views"
-            out[cause] += 1
+        beyond = scored[np.abs(err[scored]) > 2.0 * sig[scored]]
+        lost = _undetected(tracking, np.array([r.in_view for r in rs], bool),
+                           np.array([r.px_error for r in rs], float))[beyond]
+        out["track_lost"] += int(lost.sum())
+        # the rest: the click's designation, else its first views, else the later ones
+        rest = "designation" if designation else \
+            "click_views" if beyond[:1].tolist() == scored[:1].tolist() else "later_views"
+        out[rest] += int((~lost).sum())
     return out
 
 
@@ -360,7 +369,7 @@ def _method_scores(rows: list[list[_Row]], seconds: float, brief: bool = False,
     in_view = np.array([r.in_view for r in flat], bool)
     err = np.array([r.px_error for r in flat], float)
     scored = tracking & in_view & np.isfinite(err)
-    undetected = tracking & (~in_view | (np.nan_to_num(err, nan=np.inf) > LOSS_PX))
+    undetected = _undetected(tracking, in_view, err)
     losses = sum(int(np.sum(tr[:-1] & ~tr[1:])) for tr in
                  (np.array([r.tracking for r in rs], bool) for rs in rows) if len(tr) > 1)
     out = MethodScores(
