@@ -25,8 +25,8 @@ from estimator.tracking import (
     TargetParams,
     TargetState,
     depth_edge,
-    near_click,
     point_on_ray,
+    shows_surface,
     structure_point_at,
     under_water,
 )
@@ -115,7 +115,7 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
             half = target_window(projector.width) // 2
             edge = depth_edge(structure.points, structure.sigma, uv, np.array([u, v]),
                               pose.position_ned, half)
-            if not near_click(uv[near], np.array([u, v]), half).any():
+            if not shows_surface(uv[near], np.array([u, v]), half):
                 cov = cov + _beside_template(point, pose.position_ned, ray, water_down_m, focal)
             return Designation(point, cov, "structure", np.asarray(structure.ids)[near],
                                structure.points[near].mean(axis=0), water_down_m, edge)
@@ -143,8 +143,8 @@ def designate(projector: Projector, view: CameraView, u: float, v: float,
 
 def _beside_template(point: np.ndarray, camera_ned: np.ndarray, ray: np.ndarray,
                      water_down_m: float | None, focal_px: float) -> np.ndarray:
-    """(3,3) covariance along the ray for a click whose anchors (taken from the widened
-    radius) all lie farther from it than half its template's side (``near_click``):
+    """(3,3) covariance along the ray for a click whose anchors do not show its surface
+    (``shows_surface``: none on the click, fewer than two within half its template's side):
     nothing the target's tracker follows ties the click to their surface, so it may be
     theirs or anything on the ray up to where it meets the water (half that span is 1 σ).
     Where the ray meets the water too far off to bound anything
