@@ -220,6 +220,47 @@ class VoConsistency:
 
 
 
+class _RawPoints:
+    """The VO's map points as last output, by id (ids are unique across segments): the
+    segment and the point in its world W. Kept in the order the ids first came, as arrays,
+    so that a frame's ~500 points are taken in a few array operations."""
+
+    def __init__(self) -> None:
+        self.ids = np.zeros(0, np.int64)
+        self.segment = np.zeros(0, np.int64)
+        self.X = np.zeros((0, 3))
+        self._order = np.zeros(0, np.int64)  # argsort of ids, for look-ups
+
+    def update(self, segment: int, ids: np.ndarray, X: np.ndarray) -> None:
+        """The points ``ids`` (unique) of world ``segment`` at ``X``; new ids go last."""
+        ids = np.asarray(ids, np.int64)
+        X = np.asarray(X, float).reshape(-1, 3)
+        row = np.full(len(ids), -1)
+        if len(self.ids):
+            sorted_ids = self.ids[self._order]
+            pos = np.clip(np.searchsorted(sorted_ids, ids), 0, len(sorted_ids) - 1)
+            found = sorted_ids[pos] == ids
+            row[found] = self._order[pos[found]]
+        old = row >= 0
+        self.X[row[old]] = X[old]
+        self.segment[row[old]] = segment
+        if not old.all():
+            self.ids = np.concatenate([self.ids, ids[~old]])
+            self.segment = np.concatenate([self.segment, np.full((~old).sum(), segment)])
+            self.X = np.concatenate([self.X, X[~old]])
+            self._order = np.argsort(self.ids, kind="stable")
+
+    def of(self, segment: int) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, points in W) of a segment, in the order they came."""
+        mine = self.segment == segment
+        return self.ids[mine], self.X[mine]
+
+    def drop(self, segment: int) -> None:
+        keep = self.segment != segment
+        self.ids, self.segment, self.X = self.ids[keep], self.segment[keep], self.X[keep]
+        self._order = np.argsort(self.ids, kind="stable")
+
+
 class VoCoupling:
     """VO segments mapped into L, their EKF updates, and the port structure."""
 
@@ -235,7 +276,7 @@ class VoCoupling:
         # (``VisualOdometry.restart``; the fusion does it and clears this)
         self.restart: tuple[int, int] | None = None
         self._anchor: tuple[int, np.ndarray, np.ndarray] | None = None  # segment, p_W, r_cam
-        self._points: dict[int, tuple[int, np.ndarray]] = {}  # id → (segment, X_W)
+        self._points = _RawPoints()
         self.frozen: dict[int, np.ndarray] = {}  # id → L point of ended segments
         self.frozen_sigma: dict[int, float] = {}
         self.landmarks: LandmarkMap | None = None
@@ -268,8 +309,7 @@ class VoCoupling:
             return
         if not self._consistent(out, ekf, carrier_fresh):
             return
-        for pid, X in zip(out.point_ids, out.points_world, strict=True):
-            self._points[int(pid)] = (out.segment, np.asarray(X, float))
+        self._points.update(out.segment, out.point_ids, out.points_world)
         p = np.asarray(out.camera_position_world, float)
         if ekf.vo is None or ekf.vo.segment != out.segment:
             self._start_segment(out, p, ekf)
@@ -371,8 +411,7 @@ class VoCoupling:
         """Forget the current VO segment's mapping and raw points (not frozen: its geometry
         is wrong); the landmarks, refined from the fused poses, stay."""
         if ekf.vo is not None:
-            seg = ekf.vo.segment
-            self._points = {k: v for k, v in self._points.items() if v[0] != seg}
+            self._points.drop(ekf.vo.segment)
             ekf.vo = None
         self._anchor = None
 
@@ -431,14 +470,13 @@ class VoCoupling:
         if ekf is None or ekf.vo is None:
             return
         seg = ekf.vo.segment
-        cur = [(pid, X) for pid, (s, X) in self._points.items() if s == seg]
-        if cur:
-            X = np.array([c[1] for c in cur])
-            for (pid, _), q, s in zip(cur, ekf.vo_to_level(X), ekf.vo_point_sigma(X),
-                                      strict=True):
+        cur, X = self._points.of(seg)
+        if len(cur):
+            for pid, q, s in zip(cur.tolist(), ekf.vo_to_level(X), ekf.vo_point_sigma(X),
+                                 strict=True):
                 self.frozen[pid] = q
                 self.frozen_sigma[pid] = float(s)
-        self._points = {k: v for k, v in self._points.items() if v[0] != seg}
+        self._points.drop(seg)
         ekf.vo = None
 
     # --------------------------------------------------------------------------- output
@@ -457,13 +495,11 @@ class VoCoupling:
             pts.append(p)
             sig.append(self.frozen_sigma[pid])
         if ekf is not None and ekf.vo is not None:
-            seg = ekf.vo.segment
-            cur = [(pid, X) for pid, (s, X) in self._points.items() if s == seg]
-            if cur:
-                X = np.array([c[1] for c in cur])
+            cur, X = self._points.of(ekf.vo.segment)
+            if len(cur):
                 pts.extend(ekf.vo_to_level(X))
                 sig.extend(ekf.vo_point_sigma(X))
-                ids.extend(c[0] for c in cur)
+                ids.extend(cur.tolist())
         if not ids:
             return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
         return np.array(pts), np.array(sig), np.array(ids, np.int64)

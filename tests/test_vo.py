@@ -628,3 +628,29 @@ def test_the_vo_rotation_check_allows_for_the_jitter_of_frame_stamps():
     flagged = [f.t for f in frames if check.check(f)]
     assert check.time_sigma == 0.0
     assert flagged and 10.0 < flagged[0] <= 10.4 + 1e-9, flagged[:3]
+
+
+def test_the_couplings_raw_points_keep_the_last_world_of_each_id_in_first_seen_order():
+    """``_RawPoints`` (the VO's map points by id, as arrays) against the dict it replaces:
+    an id keeps its first place, takes its latest segment and point, and leaves with its
+    segment."""
+    from estimator.vo_coupling import _RawPoints
+
+    rng = np.random.default_rng(3)
+    raw, model = _RawPoints(), {}
+    for step in range(200):
+        segment = int(rng.integers(0, 3))
+        if step % 23 == 22:
+            raw.drop(segment)
+            model = {k: v for k, v in model.items() if v[0] != segment}
+            continue
+        ids = rng.choice(60, size=int(rng.integers(0, 15)), replace=False)
+        X = rng.normal(size=(len(ids), 3))
+        raw.update(segment, ids, X)
+        for pid, x in zip(ids.tolist(), X, strict=True):
+            model[pid] = (segment, x)
+        for s in range(3):
+            ids_s, X_s = raw.of(s)
+            want = [(k, v[1]) for k, v in model.items() if v[0] == s]
+            assert ids_s.tolist() == [k for k, _ in want]
+            assert np.array_equal(X_s.reshape(-1, 3), np.array([x for _, x in want]).reshape(-1, 3))
