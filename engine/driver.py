@@ -55,7 +55,8 @@ class FusionEngine(Protocol):
 
     # An engine may also have ``prepare_frame(image)``, a pure function of the image the
     # frame reader then runs ahead in its thread (``frame_preparer``); its result comes back
-    # as ``process_frame(t, image, prepared)``. Engines without one are never given any.
+    # as ``process_frame(t, image, prepared, following)``, ``following`` the next frame's
+    # when the reader has it (else None). Engines without one are never given any.
     def process_frame(self, t: float, image: np.ndarray) -> Any | None: ...
 
     def process_vo(self, out: VoOutput) -> None: ...
@@ -113,7 +114,7 @@ def dispatch(engine: FusionEngine, msg: EngineMessage) -> Any | None:
         engine.process_vo(msg.vo)
         return engine.state(at=msg.t)
     if msg.prepared is not None:
-        return engine.process_frame(msg.t, msg.image, msg.prepared)
+        return engine.process_frame(msg.t, msg.image, msg.prepared, msg.following)
     return engine.process_frame(msg.t, msg.image)
 
 

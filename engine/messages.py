@@ -47,6 +47,9 @@ class FrameMessage:
     # The engine's ``prepare_frame`` of the image, made ahead by the reading thread (None:
     # the engine makes it itself, on its own time).
     prepared: Any = None
+    # The next frame's ``prepared`` when the reader already has it (a recording): the engine
+    # may start on it while the other sensors' messages in between are processed.
+    following: Any = None
 
 
 SensorMessage = ImuMessage | GnssMessage | FrameMessage
@@ -94,10 +97,17 @@ def sensor_messages(rec: Recording, after: float | None = None, until: float | N
         if not frames or first >= len(rec.frame_times):
             return
         with contextlib.closing(rec.prepared_frames(first, prepare)) as decoded:
-            for index, t, image, prepared in decoded:
+            # one frame held back, to hand its successor's ``prepared`` along with it (the
+            # reading thread is a few frames ahead: no wait)
+            held = next(decoded, None)
+            while held is not None:
+                index, t, image, prepared = held
                 if t > hi:
                     return
-                yield t, _FRAME, index, FrameMessage(t, index, image, prepared=prepared)
+                held = next(decoded, None)
+                following = None if held is None or held[1] > hi else held[3]
+                yield t, _FRAME, index, FrameMessage(t, index, image, prepared=prepared,
+                                                     following=following)
 
     for _t, _kind, _i, msg in heapq.merge(imu(), gnss(), video(), key=lambda m: m[:3]):
         yield msg

@@ -617,13 +617,15 @@ class FrameCheck:
 
 
 def checked_vo(vo: VisualOdometry, check: FrameCheck, t: float, image: np.ndarray,
-               prepared: WorkingImage | None = None) -> VoOutput:
+               prepared: WorkingImage | None = None,
+               following: WorkingImage | None = None) -> VoOutput:
     """The VO's output of a frame, or, for a frame unfit for it, an output that says why
     (status "skipped"; the VO's state untouched). The engine and the evaluation's VO pass
-    both go through here. ``prepared``: the VO's ``prepare`` of the image, made ahead."""
+    both go through here. ``prepared``: the VO's ``prepare`` of the image, made ahead;
+    ``following``: the next frame's, when known (``VisualOdometry.process``)."""
     problem = check.problem(image, t)
     if not problem:
-        return vo.process(t, image, prepared)
+        return vo.process(t, image, prepared, following)
     return VoOutput(time=float(t), status="skipped", segment=-1, C_world_to_camera=None,
                     camera_position_world=None, n_tracked=0, n_inliers=0, is_keyframe=False,
                     points_world=np.zeros((0, 3)), point_ids=np.zeros(0, np.int64),

@@ -61,6 +61,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from .frames import skew
+from .workers import Pending, worker
 
 
 @dataclass
@@ -111,6 +112,7 @@ class JointParams:
     solve_interval_s: float = 1.0  # a solve at most this often
     pixel_sigma_px: float = 1.0  # tracked corner noise (the template-aligned front end)
     iterations: int = 3  # alternations (points | rotations) per solve, warm-started
+    land_after_calls: int = 3  # a solve posed at one frame lands this many frames later
     min_views: int = 5  # views a landmark needs in the window
     huber_px: float = 3.0  # residuals beyond this are down-weighted in the rotations
     min_view_landmarks: int = 20  # a view with fewer keeps its fused attitude
@@ -454,7 +456,8 @@ class ViewWindow:
         self.params = params
         self.views: list[_View] = []
         self._last_solve = -math.inf
-        self._job: _JointSolve | None = None  # the solve under way (``step``)
+        self._job: Pending | None = None  # the solve under way in the worker (``step``)
+        self._calls = 0  # ``step`` calls since it started
 
     def add(self, t: float, C_level_to_camera: np.ndarray, camera_position_ned: np.ndarray,
             attitude_cov: np.ndarray | None, ids: np.ndarray, xy: np.ndarray) -> None:
@@ -492,32 +495,42 @@ class ViewWindow:
 
     def step(self, t: float, priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """One frame's share of the solve: a solve is started when one is due and goes on by
-        one alternation per call, so that no frame carries all of it (a live frame has
-        100 ms). Returns the solution (``_JointSolve.result``) at the call that finishes it,
-        None otherwise.
-        The solve works on the views as they were when it started; the result arrives
-        ``JointParams.iterations`` calls later, always the same for a given recording."""
-        if self._job is None:
-            if not self.due(t):
+        """One frame's turn: a solve is posed when one is due and runs in a worker thread
+        (``estimator.workers``) beside the next frames, so that no frame carries it (a live
+        frame has 100 ms). Returns the solution (``_JointSolve.result``) at the
+        ``JointParams.land_after_calls``-th call after it was posed, None otherwise.
+        The solve works on the views as they were when it was posed; the result is always
+        the same for a given recording, whatever the machine."""
+        if self._job is not None:
+            self._calls += 1
+            if self._calls < self.params.land_after_calls:
                 return None
-            self._last_solve = float(t)
-            self._job = _JointSolve.start(list(self.views), priors, self.params, self.focal)
-            if self._job is None:  # nothing to solve for
-                return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
-        job = self._job
-        job.alternate()
-        if job.done < self.params.iterations:
+            solved = self._job.result().apply()
+            self._job = None
+            return solved
+        if not self.due(t):
             return None
-        self._job = None
-        return job.result()
+        self._last_solve = float(t)
+        job = _JointSolve.start(list(self.views), priors, self.params, self.focal)
+        if job is None:  # nothing to solve for
+            return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
+        self._job = Pending(worker("landmark-window").submit(job.solve, self.params.iterations))
+        self._calls = 0
+        return None
+
+    def __getstate__(self) -> dict:
+        # a copy waits for the solve under way (``Pending``) before its arrays are copied
+        if self._job is not None:
+            self._job.result()
+        return dict(self.__dict__)
 
 
 @dataclass
 class _JointSolve:
-    """A joint solve under way (``ViewWindow.step``), held as plain arrays rather than a
-    suspended function: an engine copied in the middle of one (a replay's checkpoint) goes
-    on exactly like the original.
+    """A joint solve (``ViewWindow.step``): posed from the views, then solved on its own
+    plain arrays (``solve``, in a worker thread) and applied to the views when it lands. An
+    engine copied in the middle of one (a replay's checkpoint) goes on exactly like the
+    original.
 
     Warm start: the alternation converges slowly along the coupled directions (a rotation of
     the views against a shift of the points), so each solve goes on from the last one's
@@ -543,6 +556,8 @@ class _JointSolve:
     X: np.ndarray  # the landmarks so far
     H: np.ndarray  # the rotations' normal matrices
     done: int = 0  # alternations made
+    rotation_var: np.ndarray | None = None  # per view, once solved
+    result: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # ids, X, P once solved
 
     @staticmethod
     def start(views: list[_View], priors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
@@ -586,19 +601,27 @@ class _JointSolve:
         self.H[self.few] = self.prior_info[self.few]
         self.done += 1
 
-    def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(ids, positions (N,3), covariances (N,3,3)) of the landmarks; the views take their
-        solved rotations and rotation variances."""
+    def solve(self, iterations: int) -> _JointSolve:
+        """The alternations and the landmarks' final triangulation (``result``), on the
+        job's own arrays alone: it may run in a worker while the views change."""
+        for _ in range(iterations):
+            self.alternate()
         # Each ray's angular variance: the pixel noise plus what is left of its view's
         # rotation uncertainty (small with many landmarks, the fused one with few).
-        rotation_var = np.trace(np.linalg.inv(self.H), axis1=1, axis2=2) / 3.0
-        for v, c, var in zip(self.views, self.C, rotation_var, strict=True):
-            v.C_solved, v.rotation_var = c, float(var)
+        self.rotation_var = np.trace(np.linalg.inv(self.H), axis1=1, axis2=2) / 3.0
         X, A = _triangulate_rays(self.C, self.centre, self.view_of, self.point_of,
                                  self.by_point, self.xy, self.X,
-                                 1.0 / (self.sigma**2 + rotation_var[self.view_of]),
+                                 1.0 / (self.sigma**2 + self.rotation_var[self.view_of]),
                                  self.x_prior, self.info_prior)
-        return self.ids, X, np.linalg.inv(A + 1e-9 * np.eye(3))
+        self.result = (self.ids, X, np.linalg.inv(A + 1e-9 * np.eye(3)))
+        return self
+
+    def apply(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The views take their solved rotations and rotation variances; returns (ids,
+        positions (N,3), covariances (N,3,3)) of the landmarks (``solve`` done)."""
+        for v, c, var in zip(self.views, self.C, self.rotation_var, strict=True):
+            v.C_solved, v.rotation_var = c, float(var)
+        return self.result
 
 
 class _Groups:

@@ -191,16 +191,18 @@ class Fusion:
         return None if self.vo is None else self.vo.prepare(image)
 
     def process_frame(self, t: float, image: np.ndarray,
-                      prepared: WorkingImage | None = None) -> FusedState | None:
+                      prepared: WorkingImage | None = None,
+                      following: WorkingImage | None = None) -> FusedState | None:
         """One video frame: VO, then the fused state at the frame time (for the overlay).
-        ``prepared``: the image's ``prepare_frame``, when it was made ahead."""
+        ``prepared``: the image's ``prepare_frame``, when it was made ahead; ``following``:
+        the next frame's, when it is known already (the VO starts tracking into it)."""
         t0 = _time.perf_counter()
         if self.vo is not None:
             t1 = _time.perf_counter()
             if self.coupling.restart is not None:  # its world was found wrong (vo_restart_due)
                 self.vo.restart(*self.coupling.restart)
                 self.coupling.restart = None
-            out = checked_vo(self.vo, self.frame_check, float(t), image, prepared)
+            out = checked_vo(self.vo, self.frame_check, float(t), image, prepared, following)
             self._timer.add("vo", _time.perf_counter() - t1)
             self.process_vo(out)
         state = self.state(at=float(t))

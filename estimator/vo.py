@@ -45,33 +45,46 @@ When tracking is lost (too few PnP inliers) the map is dropped and a new world i
 
 from __future__ import annotations
 
-import os
 import time as _time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import csr_matrix
 
-from estimator.frames import skew
+from estimator.frames import rotvec_to_dcm, skew
 from estimator.records import CameraCalibration, mean_focal
+from estimator.workers import Pending, worker
 
 STAGES = ("detect", "track", "pose", "triangulate", "ba")
-_WORKER: tuple[int, ThreadPoolExecutor] | None = None
 
 
-def _worker() -> ThreadPoolExecutor:
-    """One thread for the OpenCV calls that overlap the VO's own numpy work. Made on first
-    use in each process (a VO is pickled by the campaign and deep-copied by the evaluation,
-    and a forked child has none of its parent's threads)."""
-    global _WORKER
-    if _WORKER is None or _WORKER[0] != os.getpid():
-        _WORKER = (os.getpid(), ThreadPoolExecutor(1, thread_name_prefix="vo-lk"))
-    return _WORKER[1]
+def _timed_bundle_adjust(*args: object) -> tuple[tuple[np.ndarray, ...], float]:
+    """``bundle_adjust`` and the seconds it took (in whichever thread it ran)."""
+    t0 = _time.perf_counter()
+    return bundle_adjust(*args), _time.perf_counter() - t0  # type: ignore[arg-type]
+
+
+class _FrontEnd(NamedTuple):
+    """A frame's tracks as the front end followed them (``VisualOdometry._front_end``): the
+    found pixels, which are kept, and the rows whose template warp moved with their warps."""
+
+    uv: np.ndarray
+    ok: np.ndarray
+    warp_rows: np.ndarray
+    warps: np.ndarray
+
+
+class _BaProblem(NamedTuple):
+    """A local BA as ``_ba_problem`` posed it: the keyframes whose poses it refines (by
+    ``bundle_adjust``'s camera index), the map ids of its points, whether it is the
+    segment's early one (gauge reset), and ``bundle_adjust``'s arguments."""
+
+    keyframes: list
+    point_ids: np.ndarray
+    early: bool
+    args: tuple
 
 
 @dataclass
@@ -113,6 +126,9 @@ class VoParams:
     ba_huber_px: float = 1.0  # threshold of the (pseudo-)Huber BA loss
     ba_max_nfev: int = 10  # function evaluations of one BA
     ba_outlier_px: float = 2.0  # points with a larger BA residual are dropped
+    # Frames a keyframe's BA (once the first keyframes are fixed) runs beside the tracking
+    # before it lands, applied on that frame whatever the machine (0: at once, in line)
+    ba_lag_frames: int = 3
     history_frames: int = 40  # recent frames kept to check new points against their whole track
     history_checks: int = 8  # at most this many of them checked per new point set
 
@@ -331,147 +347,132 @@ def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = True
 
 # ------------------------------------------------------------------------ bundle adjustment
 
+# A point's normal block has six distinct entries (a, b); _SYM puts them back into 3×3.
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
-def _whitening(H: np.ndarray) -> np.ndarray:
-    """Q with Qᵀ H Q ≈ I for a stack of symmetric blocks (a small ridge keeps directions the
-    data do not constrain, e.g. the depth of a point seen once, from being stretched without
-    bound)."""
-    n = H.shape[-1]
-    ridge = 1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] / n + 1e-12
-    L = np.linalg.cholesky(H + ridge * np.eye(n))
-    return np.linalg.inv(L).transpose(0, 2, 1)
+
+def _inv3_sym(M: np.ndarray) -> np.ndarray:
+    """Inverses of a stack (n,3,3) of symmetric positive definite blocks, by cofactors."""
+    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
+    d, e, f = M[:, 1, 1], M[:, 1, 2], M[:, 2, 2]
+    cof = np.stack([d * f - e * e, c * e - b * f, b * e - c * d,
+                    a * f - c * c, b * c - a * e, a * d - b * b], axis=1)
+    det = a * cof[:, 0] + b * cof[:, 1] + c * cof[:, 2]
+    return cof[:, _SYM] / det[:, None, None]
 
 
 def bundle_adjust(C_world_to_camera: np.ndarray, t_camera: np.ndarray, points: np.ndarray,
                   camera_index: np.ndarray, point_index: np.ndarray, xy: np.ndarray,
-                  fixed: np.ndarray, focal: float, huber_px: float = 1.0, max_nfev: int = 10
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  fixed: np.ndarray, focal: float, huber_px: float = 1.0, max_nfev: int = 10,
+                  ftol: float = 1e-8) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Minimise the reprojection error (pixels, pseudo-Huber loss of threshold ``huber_px``)
     over the free poses and all points.
 
     Poses (K,3,3)/(K,3) map W into each camera; observation o is point ``point_index[o]`` seen
     at normalised ``xy[o]`` by camera ``camera_index[o]``. A free pose is updated as
-    ``C = exp([δ×]) C_init`` (no Rodrigues singularity whatever the attitude). The Jacobian is
-    analytic and sparse (a row pair touches one pose and one point), solved by LSMR.
-    Returns the refined poses, points and the per-observation residual norm (px).
+    ``C = exp([δ×]) C`` (no Rodrigues singularity whatever the attitude). Levenberg–Marquardt
+    on the robust cost, its loss as iteratively reweighted least squares, each step solved
+    by the Schur complement: the points' 3×3 blocks are eliminated in closed form and the
+    few free poses (6 unknowns each) solved densely — the sparsity every local BA has, which
+    a general sparse solver does not exploit. At most ``max_nfev`` cost evaluations; stops
+    when a step lowers the cost by less than ``ftol`` of it. Returns the refined poses,
+    points and the per-observation residual norm (px).
     """
-    ba = _BundleProblem(C_world_to_camera, t_camera, points, camera_index, point_index, xy,
-                        fixed, focal)
-    y0 = ba.whiten()
-    # Pseudo-Huber ("soft_l1"): scipy's piecewise "huber" stalls when most residuals start
-    # beyond the threshold (its curvature vanishes there); the smooth version does not.
-    sol = least_squares(ba.fun_y, y0, jac=ba.jac_y, method="trf", loss="soft_l1",
-                        f_scale=huber_px, max_nfev=max_nfev, tr_solver="lsmr",
-                        tr_options={"atol": 1e-6, "btol": 1e-6, "maxiter": 50})
-    x = ba.to_x(sol.x)
-    C, t, X, _ = ba.unpack(x)
-    res = ba.fun(x).reshape(-1, 2)
-    return C, t, X, np.linalg.norm(res, axis=1)
+    C = np.array(C_world_to_camera, float)
+    t = np.array(t_camera, float)
+    X = np.array(points, float)
+    # Observations grouped by point: the points' sums are then contiguous (reduceat).
+    order = np.argsort(np.asarray(point_index), kind="stable")
+    ci, pi = np.asarray(camera_index)[order], np.asarray(point_index)[order]
+    xy = np.asarray(xy, float)[order]
+    free = np.flatnonzero(~np.asarray(fixed, bool))
+    n_free, n_pt, n_cam = len(free), len(X), len(C)
+    slot = np.full(n_cam, -1)
+    slot[free] = np.arange(n_free)
+    of = np.flatnonzero(slot[ci] >= 0)  # observations by free cameras
+    so = slot[ci[of]]
+    by_camera = [np.flatnonzero(so == k) for k in range(n_free)]
+    seen = np.unique(pi)  # points without an observation keep their place
+    starts = np.searchsorted(pi, seen)
+    f2 = huber_px ** 2
 
+    def project(C: np.ndarray, t: np.ndarray, X: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # every point in every camera (one product), then each observation's
+        Y = (X @ C.transpose(2, 0, 1).reshape(3, 3 * n_cam)).reshape(n_pt, n_cam, 3)[pi, ci]
+        Xc = Y + t[ci]
+        r = focal * (Xc[:, :2] / np.maximum(Xc[:, 2:], 1e-9) - xy)
+        return r, Y, Xc
 
-class _BundleProblem:
-    """The bundle adjustment's unknowns (free poses as [δ, t], then the points), residuals and
-    sparse Jacobian (``bundle_adjust``)."""
+    def cost(r: np.ndarray) -> float:
+        return float(f2 * np.sum(np.sqrt(1.0 + r * r / f2) - 1.0))
 
-    def __init__(self, C_world_to_camera: np.ndarray, t_camera: np.ndarray, points: np.ndarray,
-                 camera_index: np.ndarray, point_index: np.ndarray, xy: np.ndarray,
-                 fixed: np.ndarray, focal: float) -> None:
-        self.n_cam, self.n_pt, self.n_obs = len(C_world_to_camera), len(points), len(xy)
-        self.free = np.flatnonzero(~np.asarray(fixed, bool))
-        self.slot = np.full(self.n_cam, -1)
-        self.slot[self.free] = np.arange(len(self.free))
-        self.n_pose = 6 * len(self.free)
-        self.ci, self.pi = np.asarray(camera_index), np.asarray(point_index)
-        self.C_init = np.asarray(C_world_to_camera, float)
-        self.t_camera = t_camera
-        self.xy, self.focal = xy, focal
-        self.of = np.arange(self.n_obs)[self.slot[self.ci] >= 0]  # observations by free poses
-        self.rows, self.cols = self._pattern()
-        self.x0 = np.concatenate([np.column_stack([np.zeros((len(self.free), 3)),
-                                                   np.asarray(t_camera, float)[self.free]]
-                                                  ).ravel(), np.asarray(points, float).ravel()])
-
-    def _pattern(self) -> tuple[np.ndarray, np.ndarray]:
-        """The fixed sparsity: rows (2 per observation) × pose columns and point columns."""
-        o, of, n_obs = np.arange(self.n_obs), self.of, self.n_obs
-        rows_pt = np.broadcast_to(2 * o[:, None, None] + np.arange(2)[None, :, None],
-                                  (n_obs, 2, 3))
-        cols_pt = np.broadcast_to(self.n_pose + 3 * self.pi[:, None, None] + np.arange(3),
-                                  (n_obs, 2, 3))
-        rows_cam = np.broadcast_to(2 * of[:, None, None] + np.arange(2)[None, :, None],
-                                   (len(of), 2, 6))
-        cols_cam = np.broadcast_to(6 * self.slot[self.ci[of]][:, None, None] + np.arange(6),
-                                   (len(of), 2, 6))
-        return (np.concatenate([rows_cam.ravel(), rows_pt.ravel()]),
-                np.concatenate([cols_cam.ravel(), cols_pt.ravel()]))
-
-    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        C = self.C_init.copy()
-        t = np.array(self.t_camera, float)
-        dexp = np.zeros((self.n_cam, 3, 3, 3))
-        for k, c in enumerate(self.free):
-            Rd, J = cv2.Rodrigues(x[6 * k:6 * k + 3])
-            C[c] = Rd @ self.C_init[c]
-            t[c] = x[6 * k + 3:6 * k + 6]
-            dexp[c] = J.reshape(3, 3, 3)  # [k, i, j] = d exp(δ)_ij / d δ_k
-        return C, t, x[self.n_pose:].reshape(-1, 3), dexp
-
-    def _camera_points(self, x: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        C, t, X, dexp = self.unpack(x)
-        Xc = np.einsum("oij,oj->oi", C[self.ci], X[self.pi]) + t[self.ci]
-        return C, t, X, dexp, Xc
-
-    def fun(self, x: np.ndarray) -> np.ndarray:
-        Xc = self._camera_points(x)[4]
-        z = np.maximum(Xc[:, 2:], 1e-9)
-        return (self.focal * (Xc[:, :2] / z - self.xy)).ravel()
-
-    def blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """d(residual)/d(pose) of the observations by free cameras and d(residual)/d(point)."""
-        C, _, X, dexp, Xc = self._camera_points(x)
-        ci, of, focal = self.ci, self.of, self.focal
+    r, Y, Xc = project(C, t, X)
+    c0, lam, nfev, done = cost(r), 1e-3, 1, False
+    while nfev < max_nfev and not done:
+        # Jacobians of the residuals, each row scaled by √(loss weight)
+        sw = (1.0 + r * r / f2) ** -0.25
         z = np.maximum(Xc[:, 2], 1e-9)
-        A = np.zeros((self.n_obs, 2, 3))  # d(residual) / d(Xc)
-        A[:, 0, 0] = A[:, 1, 1] = focal / z
-        A[:, 0, 2] = -focal * Xc[:, 0] / z**2
-        A[:, 1, 2] = -focal * Xc[:, 1] / z**2
-        Y = np.einsum("oij,oj->oi", self.C_init[ci[of]], X[self.pi[of]])  # point by C_init
-        dXc_ddelta = np.einsum("okij,oj->oik", dexp[ci[of]], Y)
-        return np.concatenate([A[of] @ dXc_ddelta, A[of]], axis=2), A @ C[ci]
-
-    def whiten(self) -> np.ndarray:
-        """Block-Jacobi preconditioning as a change of variables x = x0 + Q (y - y0): each
-        pose and each point is whitened by its own block of JᵀJ, so LSMR is not slowed by the
-        weak depth direction of far points and few iterations give nearly exact Gauss–Newton
-        steps. Returns y0."""
-        d_cam, d_pt = self.blocks(self.x0)
-        H_cam = np.zeros((len(self.free), 6, 6))
-        np.add.at(H_cam, self.slot[self.ci[self.of]], np.einsum("oki,okj->oij", d_cam, d_cam))
-        H_pt = np.zeros((self.n_pt, 3, 3))
-        np.add.at(H_pt, self.pi, np.einsum("oki,okj->oij", d_pt, d_pt))
-        self.Q_cam, self.Q_pt = _whitening(H_cam), _whitening(H_pt)
-        r0 = self.fun(self.x0)
-        # trf starts with a trust radius |y0|: make it the size of a full step (|r0| in
-        # whitened units) instead of growing it from 1.
-        self.y0 = np.full(len(self.x0), np.linalg.norm(r0) / np.sqrt(len(self.x0)) + 1e-3)
-        return self.y0
-
-    def to_x(self, y: np.ndarray) -> np.ndarray:
-        dy = y - self.y0
-        dx_cam = np.einsum("kij,kj->ki", self.Q_cam, dy[:self.n_pose].reshape(-1, 6)).ravel()
-        dx_pt = np.einsum("pij,pj->pi", self.Q_pt, dy[self.n_pose:].reshape(-1, 3)).ravel()
-        return self.x0 + np.concatenate([dx_cam, dx_pt])
-
-    def fun_y(self, y: np.ndarray) -> np.ndarray:
-        return self.fun(self.to_x(y))
-
-    def jac_y(self, y: np.ndarray) -> csr_matrix:
-        d_cam, d_pt = self.blocks(self.to_x(y))
-        data = np.concatenate([(d_cam @ self.Q_cam[self.slot[self.ci[self.of]]]).ravel(),
-                               (d_pt @ self.Q_pt[self.pi]).ravel()])
-        return csr_matrix((data, (self.rows, self.cols)),
-                          shape=(2 * self.n_obs, self.n_pose + 3 * self.n_pt))
+        u, v = Xc[:, 0] / z, Xc[:, 1] / z
+        A = np.zeros((len(r), 2, 3))  # d(residual)/d(Xc): rows (1, 0, −u), (0, 1, −v) · f/z
+        A[:, 0, 0] = sw[:, 0] * focal / z
+        A[:, 1, 1] = sw[:, 1] * focal / z
+        A[:, 0, 2] = -A[:, 0, 0] * u
+        A[:, 1, 2] = -A[:, 1, 1] * v
+        rw = sw * r
+        Cc = C[ci]
+        J0 = A[:, 0, :1] * Cc[:, 0] + A[:, 0, 2:] * Cc[:, 2]  # d(residual x)/d(point)
+        J1 = A[:, 1, 1:2] * Cc[:, 1] + A[:, 1, 2:] * Cc[:, 2]
+        Ao = A[of]  # d Xc/dδ = −[Y×]: a row a of A gives Y × a
+        Jc = np.concatenate([np.stack([np.cross(Y[of], Ao[:, 0]), np.cross(Y[of], Ao[:, 1])],
+                                      axis=1), Ao], axis=2)  # (observations by free, 2, 6)
+        V = np.zeros((n_pt, 6))
+        V[seen] = np.add.reduceat(np.column_stack([J0[:, a] * J0[:, b] + J1[:, a] * J1[:, b]
+                                                   for a, b in _PAIRS]), starts, axis=0)
+        V = V[:, _SYM]
+        gp = np.zeros((n_pt, 3))
+        gp[seen] = np.add.reduceat(J0 * rw[:, :1] + J1 * rw[:, 1:], starts, axis=0)
+        U = np.zeros((n_free, 6, 6))
+        gc = np.zeros((n_free, 6))
+        for k, rows in enumerate(by_camera):
+            Jk = Jc[rows].reshape(-1, 6)
+            U[k] = Jk.T @ Jk
+            gc[k] = Jk.T @ rw[of[rows]].ravel()
+        # pose-point coupling blocks, (point, 6·free, 3)
+        W = np.zeros((n_pt, n_free, 6, 3))
+        W[pi[of], so] = Jc[:, 0, :, None] * J0[of, None, :] + Jc[:, 1, :, None] * J1[of, None, :]
+        W = W.reshape(n_pt, 6 * n_free, 3)
+        dU = np.einsum("kii->ki", U)
+        dV = np.einsum("pii->pi", V)
+        while nfev < max_nfev:
+            # Marquardt's damping, and a ridge for a depth no observation constrains
+            Vi = _inv3_sym(V + (lam * dV + 1e-9 * dV.sum(1, keepdims=True) + 1e-12)[:, :, None]
+                           * np.eye(3))
+            WV = W @ Vi
+            S = -(WV.transpose(1, 0, 2).reshape(6 * n_free, -1)
+                  @ W.transpose(1, 0, 2).reshape(6 * n_free, -1).T)
+            for k in range(n_free):
+                S[6 * k:6 * k + 6, 6 * k:6 * k + 6] += U[k] + np.diag(lam * dU[k])
+            b = (WV @ gp[:, :, None]).sum(axis=0)[:, 0] - gc.ravel()
+            dc = np.linalg.lstsq(S, b, rcond=None)[0] if n_free else b
+            dp = -(Vi @ (gp + W.transpose(0, 2, 1) @ dc)[:, :, None])[:, :, 0]
+            Cn, tn = C.copy(), t.copy()
+            for k, c in enumerate(free):
+                Cn[c] = rotvec_to_dcm(dc[6 * k:6 * k + 3]) @ C[c]
+                tn[c] = t[c] + dc[6 * k + 3:6 * k + 6]
+            rn, Yn, Xcn = project(Cn, tn, X + dp)
+            cn = cost(rn)
+            nfev += 1
+            if cn < c0:
+                done = c0 - cn < ftol * c0
+                C, t, X, r, Y, Xc, c0 = Cn, tn, X + dp, rn, Yn, Xcn, cn
+                lam = max(lam / 3.0, 1e-7)
+                break
+            lam *= 5.0
+    res = np.empty(len(r))
+    res[order] = np.linalg.norm(r, axis=1)
+    return C, t, X, res
 
 
 def _same_pose_direction(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
@@ -656,6 +657,52 @@ def align_affine(image: np.ndarray, templates: np.ndarray, h_inv: np.ndarray,
     return centres, warps, ncc
 
 
+def align_on_templates(image: np.ndarray, tracks: _Tracks, uv: np.ndarray, ok: np.ndarray,
+                       p: VoParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Chained frame-to-frame LK drifts: each step's small error adds up, and a
+    translation-only window slides across the texture as the scene zooms (the quay
+    approaching), about 1 px per 100 frames — metres of depth for a distant point. So each
+    LK result ``uv`` (kept where ``ok``) is refined by aligning the track's own template
+    under an affine warp (scale, shear, rotation followed from frame to frame). This also
+    cuts tracks whose look changed (the drifting wave patterns of the water, occlusions),
+    which LK with its forward–backward check follows. Returns the refined pixels, which are
+    kept, and the rows whose warp moved with their new warps (``tracks`` is not changed)."""
+    rows = np.flatnonzero(ok & np.isfinite(tracks.warp[:, 0, 0]))
+    if len(rows) == 0:
+        return uv, ok, rows, np.zeros((0, 2, 2))
+    uv, ok = uv.copy(), ok.copy()
+    centre, warp, ncc = align_affine(image, tracks.template[rows], tracks.h_inv[rows],
+                                     uv[rows].astype(float), tracks.warp[rows],
+                                     p.template_iterations)
+    stretch = stretches(warp)
+    good = ((ncc >= p.template_min_ncc)
+            & (np.linalg.norm(centre - uv[rows], axis=1) <= p.template_max_shift_px)
+            & (stretch[:, 0] < 2.0) & (stretch[:, 1] > 0.5))  # a warp gone wild in a frame
+    uv[rows[good]] = centre[good]
+    ok[rows[~good]] = False
+    return uv, ok, rows[good], warp[good]
+
+
+# ------------------------------------------------------------------------------ LK
+
+
+def _lk_forward(prev: np.ndarray, cur: np.ndarray, p0: np.ndarray, lk: dict
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Pyramidal LK of points ``p0`` (N,1,2) from ``prev`` to ``cur``: (p1, status)."""
+    p1, status, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
+    return p1, status
+
+
+def _lk_backward(cur: np.ndarray, prev: np.ndarray, p1: np.ndarray, p0: np.ndarray, lk: dict,
+                 threshold_px: float) -> np.ndarray:
+    """The forward–backward check: whether each point tracked back from ``p1`` returns
+    within ``threshold_px`` of where it started. A mistrack (occlusion, water glint,
+    texture-less patch such as a black frame) rarely does."""
+    p0b, status, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **lk)
+    fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+    return (status.ravel() == 1) & (fb < threshold_px)
+
+
 # ------------------------------------------------------------------------------ state
 
 
@@ -772,7 +819,7 @@ class VisualOdometry:
         self._segment = 0
         self._next_id = 0
         self._prev_gray: np.ndarray | None = None
-        self._elapsed = dict.fromkeys((*STAGES, "total"), 0.0)
+        self._elapsed = dict.fromkeys((*STAGES, "total", "ba_solve"), 0.0)
         self._n_frames = self._n_keyframes = self._n_ba = 0
         self._new_world()
 
@@ -789,23 +836,37 @@ class VisualOdometry:
         return WorkingImage(gray, blurred)
 
     def process(self, time: float, image_bgr: np.ndarray,
-                prepared: WorkingImage | None = None) -> VoOutput:
+                prepared: WorkingImage | None = None,
+                following: WorkingImage | None = None) -> VoOutput:
         """Track the frame taken at ``time`` and return the VO output for it (``prepared``:
-        the frame's ``prepare`` when it was made ahead)."""
+        the frame's ``prepare`` when it was made ahead). ``following``: the next frame's
+        ``prepare`` when it is known already (a recording): the tracks' front end into it
+        (``_front_end``: LK, its check, the template alignment) starts in a worker thread as
+        this frame ends, beside what the fusion does before the next frame, and is taken if
+        that frame comes to ``process`` next with nothing changed in between; the outcome is
+        the same either way."""
         t_start = _time.perf_counter()
         gray, blurred = prepared if prepared is not None else self.prepare(image_bgr)
+        ahead, self._ahead = self._ahead, None
         if len(self._tracks) and self._prev_gray is not None:
-            uv, ok, backward = self._track_lk(self._prev_gray, gray)
-            if self.params.template_check:
-                uv, ok = self._align_on_templates(blurred, uv, ok)
-            ok &= backward.result()
-            self._set_tracks(np.flatnonzero(ok), uv[ok])
+            if ahead is not None and ahead.prev is self._prev_gray and ahead.cur is gray \
+                    and ahead.tracks is self._tracks:
+                front = ahead.result()
+            else:
+                front = self._front_end(self._prev_gray, gray, blurred, self._tracks)
+            self._tracks.warp[front.warp_rows] = front.warps
+            self._set_tracks(np.flatnonzero(front.ok), front.uv[front.ok])
         else:
             self._set_tracks(np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
         self._prev_gray = gray
         self._elapsed["track"] += _time.perf_counter() - t_start
         out = self._step(time, lambda n: self._detect(gray, n))
         self._renew_templates(blurred)
+        if following is not None and len(self._tracks):
+            self._ahead = Pending(
+                worker("vo-ahead").submit(self._front_end, gray, following.gray,
+                                          following.blurred, self._tracks, False),
+                prev=gray, cur=following.gray, tracks=self._tracks)
         self._elapsed["total"] += _time.perf_counter() - t_start
         return out
 
@@ -844,11 +905,12 @@ class VisualOdometry:
         return self._size
 
     def stats(self) -> dict:
-        """Average milliseconds per frame of each stage (and of the whole ``process``), the
-        average of one local BA, and frame / keyframe / BA counts."""
+        """Average milliseconds per frame of each stage (and of the whole ``process``) in the
+        caller's thread, the average of one local BA's solve (wherever it ran), and frame /
+        keyframe / BA counts."""
         n = max(self._n_frames, 1)
         out = {f"{s}_ms": 1e3 * self._elapsed[s] / n for s in (*STAGES, "total")}
-        out["ba_ms_per_call"] = 1e3 * self._elapsed["ba"] / max(self._n_ba, 1)
+        out["ba_ms_per_call"] = 1e3 * self._elapsed["ba_solve"] / max(self._n_ba, 1)
         out.update(frames=self._n_frames, keyframes=self._n_keyframes, ba_calls=self._n_ba)
         return out
 
@@ -860,54 +922,30 @@ class VisualOdometry:
         pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
         return cv2.undistortPoints(pts, self._K, self._dist).reshape(-1, 2)
 
-    def _track_lk(self, prev: np.ndarray, cur: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, Future]:
-        """LK of the tracks from ``prev`` to ``cur``: the found pixels, whether each was found
-        inside the image, and the forward–backward check still running in a worker thread.
-        OpenCV releases the GIL, so the check overlaps the template alignment (3 ms of a
-        frame's 24): the alignment takes the rows the check will cut too, and every row is
-        computed on its own, so the outcome does not depend on the overlap."""
-        p0 = self._tracks.uv.reshape(-1, 1, 2).astype(np.float32)
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **self._lk)
-
-        def backward() -> np.ndarray:
-            # A mistrack (occlusion, water glint, texture-less patch such as a black frame)
-            # rarely returns to where it started.
-            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **self._lk)
-            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
-            return (st2.ravel() == 1) & (fb < self.params.fb_threshold_px)
-
-        check = _worker().submit(backward)
+    def _front_end(self, prev: np.ndarray, cur: np.ndarray, blurred: np.ndarray | None,
+                   tracks: _Tracks, overlap: bool = True) -> _FrontEnd:
+        """The tracks followed from ``prev`` into ``cur``: pyramidal LK, its forward–backward
+        check (``_lk_backward``) and the template alignment (``align_on_templates``, on
+        ``blurred``). Reads ``tracks`` and changes nothing: the caller applies the result.
+        ``overlap``: the check runs in a worker thread beside the alignment (OpenCV releases
+        the GIL; the alignment takes the rows the check will cut too and every row is
+        computed on its own, so the outcome does not depend on the overlap); without it (the
+        next frame's front end made ahead in a worker, ``process``) one after the other."""
+        p = self.params
+        p0 = tracks.uv.reshape(-1, 1, 2).astype(np.float32)
+        p1, status = _lk_forward(prev, cur, p0, self._lk)
+        check = worker("vo-lk").submit(_lk_backward, cur, prev, p1, p0, self._lk,
+                                       p.fb_threshold_px) if overlap else None
         uv = p1.reshape(-1, 2)
         w, h = self._size
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-        return uv, (st1.ravel() == 1) & inside, check
-
-    def _align_on_templates(self, image: np.ndarray, uv: np.ndarray, ok: np.ndarray
-                            ) -> tuple[np.ndarray, np.ndarray]:
-        """Chained frame-to-frame LK drifts: each step's small error adds up, and a
-        translation-only window slides across the texture as the scene zooms (the quay
-        approaching), about 1 px per 100 frames — metres of depth for a distant point. So each
-        LK result is refined by aligning the track's own template under an affine warp (scale,
-        shear, rotation followed from frame to frame). This also cuts tracks whose look changed
-        (the drifting wave patterns of the water, occlusions), which LK with its
-        forward–backward check follows."""
-        p, tr = self.params, self._tracks
-        rows = np.flatnonzero(ok & np.isfinite(tr.warp[:, 0, 0]))
-        if len(rows) == 0:
-            return uv, ok
-        uv, ok = uv.copy(), ok.copy()
-        centre, warp, ncc = align_affine(image, tr.template[rows], tr.h_inv[rows],
-                                         uv[rows].astype(float), tr.warp[rows],
-                                         p.template_iterations)
-        stretch = stretches(warp)
-        good = ((ncc >= p.template_min_ncc)
-                & (np.linalg.norm(centre - uv[rows], axis=1) <= p.template_max_shift_px)
-                & (stretch[:, 0] < 2.0) & (stretch[:, 1] > 0.5))  # a warp gone wild in a frame
-        uv[rows[good]] = centre[good]
-        tr.warp[rows[good]] = warp[good]
-        ok[rows[~good]] = False
-        return uv, ok
+        ok = (status.ravel() == 1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) \
+            & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        rows, warps = np.zeros(0, np.int64), np.zeros((0, 2, 2))
+        if p.template_check and blurred is not None:
+            uv, ok, rows, warps = align_on_templates(blurred, tracks, uv, ok, p)
+        back = check.result() if check is not None else \
+            _lk_backward(cur, prev, p1, p0, self._lk, p.fb_threshold_px)
+        return _FrontEnd(uv, ok & back, rows, warps)
 
     def _renew_templates(self, image: np.ndarray | None) -> None:
         """New tracks, and those whose warp stretched the template beyond
@@ -984,6 +1022,8 @@ class VisualOdometry:
         self._init_previous: tuple[float, np.ndarray, np.ndarray] | None = None
         self._init_count = 0
         self._gauge = 1  # keyframe at unit distance from KF0 (the initialisation frame)
+        self._pending_ba: Pending | None = None  # a BA of this world (dropped with it)
+        self._ahead: Pending | None = None  # the next frame's front end, made ahead
 
     def _output(self, time: float, status: str, n_inliers: int = 0, is_keyframe: bool = False,
                 obs_rows: np.ndarray | None = None) -> VoOutput:
@@ -1004,6 +1044,7 @@ class VisualOdometry:
 
     def _step(self, time: float, detect: Callable) -> VoOutput:
         self._n_frames += 1
+        self._land_ba(now=False)
         if not self._keyframes:
             out = self._initialise(time, detect)
         else:
@@ -1367,9 +1408,25 @@ class VisualOdometry:
         a unit first baseline afterwards: the initial two-view geometry of a distant quay seen
         under a small parallax is ill-conditioned (translation direction off by several degrees
         at equal epipolar cost), and the next keyframes resolve it. Later the oldest two
-        keyframes of the window are fixed, which holds the gauge and the scale."""
+        keyframes of the window are fixed, which holds the gauge and the scale; that BA runs
+        in a worker thread (``ba_lag_frames``) and lands ``_land_ba``."""
         p = self.params
         t0 = _time.perf_counter()
+        self._land_ba()  # one BA at a time, in keyframe order
+        problem = self._ba_problem()
+        if problem is None:
+            return
+        if problem.early or p.ba_lag_frames <= 0:
+            self._apply_ba(problem, _timed_bundle_adjust(*problem.args))
+        else:
+            self._pending_ba = Pending(
+                worker("vo-ba").submit(_timed_bundle_adjust, *problem.args), problem=problem,
+                frame=self._n_frames + p.ba_lag_frames)
+        self._elapsed["ba"] += _time.perf_counter() - t0
+
+    def _ba_problem(self) -> _BaProblem | None:
+        """The local BA's unknowns and observations as of now (``_local_ba``)."""
+        p = self.params
         kfs = self._keyframes
         window = kfs[-p.ba_window:]
         early = window[0].serial == 0
@@ -1378,7 +1435,7 @@ class VisualOdometry:
         point_ids = np.unique(np.concatenate([k.obs_ids for k in free]))
         point_ids = point_ids[self._map.lookup(point_ids) >= 0]
         if len(point_ids) == 0:
-            return
+            return None
         used = kfs[-3 * p.ba_window:]
         cam_idx, pt_idx, xy = [], [], []
         for j, k in enumerate(used):
@@ -1387,16 +1444,37 @@ class VisualOdometry:
             cam_idx.append(np.full(hit.sum(), j))
             pt_idx.append(pos[hit])
             xy.append(k.obs_xy[hit])
-        rows = self._map.lookup(point_ids)
-        C, t, X, res = bundle_adjust(
-            np.array([k.C for k in used]), np.array([k.t for k in used]), self._map.xyz[rows],
-            np.concatenate(cam_idx), np.concatenate(pt_idx), np.concatenate(xy),
-            np.array([k.serial not in free_serials for k in used]), self._focal,
-            p.ba_huber_px, p.ba_max_nfev)
-        for j, k in enumerate(used):
+        args = (np.array([k.C for k in used]), np.array([k.t for k in used]),
+                self._map.xyz[self._map.lookup(point_ids)], np.concatenate(cam_idx),
+                np.concatenate(pt_idx), np.concatenate(xy),
+                np.array([k.serial not in free_serials for k in used]), self._focal,
+                p.ba_huber_px, p.ba_max_nfev)
+        return _BaProblem(used, point_ids, early, args)
+
+    def _land_ba(self, now: bool = True) -> None:
+        """Apply the BA running in the worker, if any, when its frame has come (``now``:
+        whatever the frame — a new keyframe or BA needs the map refined first)."""
+        pending = self._pending_ba
+        if pending is None or not (now or self._n_frames >= pending.frame):
+            return
+        self._pending_ba = None
+        t0 = _time.perf_counter()
+        self._apply_ba(pending.problem, pending.result())
+        self._elapsed["ba"] += _time.perf_counter() - t0
+
+    def _apply_ba(self, problem: _BaProblem,
+                  solved: tuple[tuple[np.ndarray, ...], float]) -> None:
+        """The refined poses and points (``_timed_bundle_adjust``) into the keyframes and the
+        map; points the BA leaves beyond ``ba_outlier_px`` dropped. Points dropped from the
+        map since the BA began stay dropped."""
+        (C, t, X, res), seconds = solved
+        self._elapsed["ba_solve"] += seconds
+        for j, k in enumerate(problem.keyframes):
             k.C, k.t = C[j], t[j]
-        self._map.xyz[rows] = X
-        if early:  # the segment's gauge: reference → initialisation frame = 1
+        rows = self._map.lookup(problem.point_ids)
+        self._map.xyz[rows[rows >= 0]] = X[rows >= 0]
+        if problem.early:  # the segment's gauge: reference → initialisation frame = 1
+            kfs = self._keyframes
             s = 1.0 / np.linalg.norm(kfs[self._gauge].centre)
             for k in kfs:
                 k.t = k.t * s
@@ -1405,10 +1483,10 @@ class VisualOdometry:
                     f.t = f.t * s
             self._map.xyz = self._map.xyz * s
         # A point behind a camera gets a huge residual (depth clamped), so this also culls it.
-        bad_pt = np.unique(np.concatenate(pt_idx)[res > p.ba_outlier_px])
+        pt_idx = problem.args[4]
+        bad_pt = np.unique(pt_idx[res > self.params.ba_outlier_px])
         if len(bad_pt):
-            bad_ids = point_ids[bad_pt]
+            bad_ids = problem.point_ids[bad_pt]
             self._map.keep(~np.isin(self._map.ids, bad_ids))
             self._tracks = self._tracks.select(np.flatnonzero(~np.isin(self._tracks.id, bad_ids)))
         self._n_ba += 1
-        self._elapsed["ba"] += _time.perf_counter() - t0

@@ -477,8 +477,9 @@ def test_end_to_end_with_rendered_frames(sim):
     outputs: dict[float, VoOutput] = {}
     process = f.vo.process
 
-    def spy(t: float, image: np.ndarray, prepared: object = None) -> VoOutput:
-        outputs[t] = process(t, image, prepared)  # keep the raw VO outputs for scoring
+    def spy(t: float, image: np.ndarray, prepared: object = None,
+            following: object = None) -> VoOutput:
+        outputs[t] = process(t, image, prepared, following)  # the raw VO outputs, for scoring
         return outputs[t]
 
     f.vo.process = spy

@@ -369,9 +369,10 @@ def test_sums_by_group_with_empty_groups_anywhere():
 
 
 def test_a_map_copied_in_the_middle_of_a_joint_solve_goes_on_like_the_original():
-    """The window's solve runs over several frames (``ViewWindow.step``); a replay's
-    checkpoint may copy the engine between two of them. The copy must be possible (a
-    suspended generator was not) and must finish the solve exactly as the original."""
+    """The window's solve runs in a worker thread beside several frames and lands on a
+    later one (``ViewWindow.step``); a replay's checkpoint may copy the engine while it
+    runs. The copy must be possible (a suspended generator, a future were not) and must
+    finish the solve exactly as the original."""
     import copy
 
     from estimator.landmarks import JointParams
@@ -393,8 +394,8 @@ def test_a_map_copied_in_the_middle_of_a_joint_solve_goes_on_like_the_original()
         maps = [lm] if copied is None else [lm, copied]
         for m in maps:
             m.update(0.1 * k, C, p, pose_cov, ids[seen], xy[seen])
-        if copied is None and lm.window._job is not None and lm.window._job.done == 1:
-            copied = copy.deepcopy(lm)  # one alternation made, two to go
+        if copied is None and lm.window._job is not None and lm.window._calls == 1:
+            copied = copy.deepcopy(lm)  # posed a frame ago, to land two frames on
     assert copied is not None
     x_a, P_a = lm.best(ids)
     x_b, P_b = copied.best(ids)

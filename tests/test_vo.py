@@ -7,6 +7,8 @@ a) geometry on projected synthetic points (ORB needs texture, so the pipeline is
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -15,6 +17,7 @@ from estimator.frames import camera_to_body, dcm_to_rotvec, euler_to_dcm, rotvec
 from estimator.records import CameraCalibration
 from estimator.vo import (
     VisualOdometry,
+    VoParams,
     bundle_adjust,
     locate,
     relative_pose,
@@ -271,6 +274,58 @@ def test_tracks_straight_path_scale_consistent():
     assert len(outs[-1].point_ids) == len(np.unique(outs[-1].point_ids)) > 100
 
 
+def test_a_keyframe_bundle_adjustment_lands_on_its_frame_whatever_the_worker():
+    """The local BA (past the segment's first keyframes) runs in a worker thread beside the
+    next frames and lands ``ba_lag_frames`` later: the outputs are the same on every run, a
+    copy taken while a BA is under way (``backend.replay.snapshot``, as the server's scout
+    takes them) goes on exactly like the original, and the lagged BA keeps the path as true
+    as the in-line one."""
+    import copy
+
+    from backend.replay import snapshot
+
+    X = marina_points(np.random.default_rng(5))
+    path = camera_path(70)
+
+    def run(vo: VisualOdometry, copy_at: int | None = None):
+        rng = np.random.default_rng(5)
+        outs, copied = [], None
+        for k, (C, position) in enumerate(path):
+            ids, uv = project(X, C, position, 0.2, rng)
+            outs.append(vo.process_tracks(0.1 * k, ids, uv))
+            if k == copy_at:
+                assert vo._pending_ba is not None  # a BA under way
+                copied = (snapshot(vo), copy.deepcopy(rng))
+        return outs, copied
+
+    lagged, _ = run(VisualOdometry(CAMERA))
+    again, _ = run(VisualOdometry(CAMERA))
+    keyframes = [k for k, o in enumerate(lagged) if o.is_keyframe]
+    pending_at = next(k for k in keyframes[1:] if k > keyframes[0] + 10)
+    _, (twin, twin_rng) = run(VisualOdometry(CAMERA), copy_at=pending_at)
+    for k in range(pending_at + 1, len(path)):
+        ids, uv = project(X, *path[k], 0.2, twin_rng)
+        out = twin.process_tracks(0.1 * k, ids, uv)
+        assert np.array_equal(out.camera_position_world, lagged[k].camera_position_world)
+    for a, b in zip(lagged, again, strict=True):
+        assert a.status == b.status
+        if a.camera_position_world is not None:
+            assert np.array_equal(a.camera_position_world, b.camera_position_world)
+            assert np.array_equal(a.points_world, b.points_world)
+    # the BA landed: the map of the frame after its lag differs from the one before
+    lag = VisualOdometry(CAMERA).params.ba_lag_frames
+    before, after = lagged[pending_at + lag - 1], lagged[pending_at + lag]
+    common = np.intersect1d(before.point_ids, after.point_ids)
+    moved = np.abs(after.points_world[np.searchsorted(after.point_ids, common)]
+                   - before.points_world[np.searchsorted(before.point_ids, common)]).max()
+    assert moved > 0.0
+    in_line, _ = run(VisualOdometry(CAMERA, replace(VoParams(), ba_lag_frames=0)))
+    first = next(i for i, o in enumerate(lagged) if o.status == "tracking")
+    for outs in (lagged, in_line):
+        share, _ = trajectory_residual(outs[first:], [(C, c) for C, c in path[first:]])
+        assert share < 0.01
+
+
 def test_tracks_turning_relative_rotation_and_direction():
     X = marina_points(np.random.default_rng(6))
     vo = VisualOdometry(CAMERA)
@@ -396,6 +451,64 @@ def rendered_run():
         outs.append(vo.process(scenario.start_gpst + t, image))
         truth.append((C_l_c, position))
     return outs, truth, vo, frames
+
+
+def test_the_next_frames_front_end_made_ahead_changes_nothing(monkeypatch):
+    """Given the next frame as it ends a frame (``process(following=…)``, a recording's
+    reader has it), the VO starts that frame's front end (LK, its check, the template
+    alignment) in a worker thread: the outputs are the same bit for bit as without, the LK
+    is no longer made on the caller's thread, and a frame the fusion skipped in between
+    (the frame check) is tracked as usual."""
+    import threading
+
+    import estimator.vo as vo_module
+    from recordings.sim.motion import ShipMotion
+    from recordings.sim.scenarios import SCENARIOS
+    from recordings.sim.scene import PortScene, camera_calibration
+
+    scenario = SCENARIOS["small-boat"]
+    scene, motion = PortScene.build(scenario, 5), ShipMotion(scenario, 5)
+    camera = camera_calibration(scenario)
+    rng = np.random.default_rng(5)
+    images = []
+    for k in range(45):
+        t = RENDER_START_S + 0.1 * k
+        C_b_l = np.asarray(motion.state(t).C_body_to_level).reshape(-1, 3, 3)[0]
+        position = np.asarray(motion.point_position_ned(t, camera.lever_arm_body)).reshape(3)
+        images.append(scene.render((C_b_l @ camera.C_camera_to_body).T, position, t, camera,
+                                   rng))
+    skipped = 30  # never given to the VO, though announced as the next frame
+    forward_on = []
+    lk_forward = vo_module._lk_forward
+
+    def spy(*args):
+        forward_on.append(threading.current_thread() is threading.main_thread())
+        return lk_forward(*args)
+
+    monkeypatch.setattr(vo_module, "_lk_forward", spy)
+    runs = {}
+    for ahead in (False, True):
+        vo = VisualOdometry(camera)
+        prepared = [vo.prepare(im) for im in images]
+        forward_on.clear()
+        outs = []
+        for k, im in enumerate(images):
+            if k == skipped:
+                continue
+            following = prepared[k + 1] if ahead and k + 1 < len(images) else None
+            outs.append(vo.process(0.1 * k, im, prepared[k], following))
+        runs[ahead] = (outs, list(forward_on))
+    (plain, on_main), (made_ahead, on_main_ahead) = runs[False], runs[True]
+    assert sum(o.status == "tracking" for o in plain) > 10
+    assert all(on_main) and len(on_main) > 40
+    # ahead: on the caller's thread only after the skipped frame (its LK into the frame
+    # that never came is dropped)
+    assert sum(on_main_ahead) == 1 and len(on_main_ahead) == len(on_main) + 1
+    for a, b in zip(plain, made_ahead, strict=True):
+        assert a.status == b.status and a.n_tracked == b.n_tracked
+        assert np.array_equal(a.observations[1], b.observations[1])
+        if a.camera_position_world is not None:
+            assert np.array_equal(a.camera_position_world, b.camera_position_world)
 
 
 def test_rendered_sequence_tracks_truth(rendered_run):
