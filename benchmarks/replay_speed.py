@@ -6,6 +6,8 @@ Prints:
 - milliseconds per video frame for each stage: the caller's view (decode, ``process_imu`` for
   the ~10 IMU samples of a frame, ``process_gnss``, ``process_frame``) and the engine's own
   ``Fusion.timing()`` (ms per call: imu, gnss, frame, vo, vo_update, gnss_update, compass);
+  the CPU each thread spent per frame (the main thread, the engine's workers: the VO's
+  look-ahead front end, its backward LK and BA, the landmark window; Linux);
 - the latency of ``process_frame`` (p50 / p95 / max): what a live 10 fps feed must fit in
   100 ms;
 - the peak resident memory (``resource.getrusage`` maxrss).
@@ -38,6 +40,28 @@ sys.path.insert(0, str(ROOT))  # run from anywhere without installing
 DEFAULT_RECORDING = ROOT / "recordings" / "default"
 
 
+def thread_cpu_s() -> dict[str, float]:
+    """CPU seconds (user + system) of each live Python thread, by name, and of the whole
+    process ("process"); Linux only (an empty dict elsewhere). What the process spent
+    beyond the named threads went to OpenCV's own thread pool and to threads that have
+    ended (the frame reader's)."""
+    import threading
+
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    out: dict[str, float] = {}
+    for th in threading.enumerate():
+        try:
+            with open(f"/proc/self/task/{th.native_id}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        name = th.name.split("_")[0]  # a pool's threads as one
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    if out:
+        out["process"] = time.process_time()
+    return out
+
+
 def replay_speed(path: Path, seconds: float | None = None) -> dict:
     from engine.driver import dispatch, frame_preparer
     from engine.messages import FrameMessage, GnssMessage, sensor_messages
@@ -54,6 +78,7 @@ def replay_speed(path: Path, seconds: float | None = None) -> dict:
     counts = {"imu": 0, "gnss": 0, "frame": 0}
     first = last = None
     messages = sensor_messages(rec, until=end, prepare=frame_preparer(fusion))
+    cpu0 = thread_cpu_s()
     wall0 = time.perf_counter()
     tic = wall0
     for msg in messages:
@@ -71,6 +96,7 @@ def replay_speed(path: Path, seconds: float | None = None) -> dict:
         if kind == "frame":
             frame_ms.append(1e3 * (tic - got))
     wall = time.perf_counter() - wall0
+    cpu = {k: v - cpu0.get(k, 0.0) for k, v in thread_cpu_s().items()}
     span = (last - first) if first is not None and last is not None else 0.0
     n = max(counts["frame"], 1)
     state = fusion.state()
@@ -85,6 +111,8 @@ def replay_speed(path: Path, seconds: float | None = None) -> dict:
         "realtime_factor_without_decoding": span / compute if compute > 0 else None,
         "ms_per_frame": {k: 1e3 * v / n for k, v in spent.items()},
         "engine_ms_per_call": fusion.timing(),
+        # CPU ms per frame of each thread (the engine's workers beside the main thread)
+        "thread_cpu_ms_per_frame": {k: 1e3 * v / n for k, v in cpu.items()},
         # the VO's own stages, ms per frame (ba_ms_per_call: one local bundle adjustment)
         "vo_stages": None if fusion.vo is None else fusion.vo.stats(),
         "vo_working_size": None if fusion.vo is None else
@@ -110,6 +138,10 @@ def format_speed(r: dict) -> str:
     lines.append(f"  {'total':<14} {sum(r['ms_per_frame'].values()):8.2f}   (10 fps live: 100)")
     lines.append("engine's Fusion.timing(), ms per call:")
     lines += [f"  {k:<14} {v:8.2f}" for k, v in r["engine_ms_per_call"].items()]
+    if r.get("thread_cpu_ms_per_frame"):
+        lines.append("CPU ms per video frame by thread (the rest of the process: OpenCV's pool,"
+                     " the frame reader):")
+        lines += [f"  {k:<26} {v:8.2f}" for k, v in r["thread_cpu_ms_per_frame"].items()]
     vo = r.get("vo_stages")
     if vo:
         lines.append(f"the VO's stages on its {r['vo_working_size']} working image, ms per frame "
