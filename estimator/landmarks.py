@@ -518,12 +518,6 @@ class ViewWindow:
         self._calls = 0
         return None
 
-    def __getstate__(self) -> dict:
-        # a copy waits for the solve under way (``Pending``) before its arrays are copied
-        if self._job is not None:
-            self._job.result()
-        return dict(self.__dict__)
-
 
 @dataclass
 class _JointSolve:

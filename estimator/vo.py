@@ -86,6 +86,11 @@ class _BaProblem(NamedTuple):
     early: bool
     args: tuple
 
+    @property
+    def point_index(self) -> np.ndarray:
+        """Each observation's point (an index into ``point_ids``)."""
+        return self.args[4]
+
 
 @dataclass
 class VoParams:
@@ -1483,8 +1488,7 @@ class VisualOdometry:
                     f.t = f.t * s
             self._map.xyz = self._map.xyz * s
         # A point behind a camera gets a huge residual (depth clamped), so this also culls it.
-        pt_idx = problem.args[4]
-        bad_pt = np.unique(pt_idx[res > self.params.ba_outlier_px])
+        bad_pt = np.unique(problem.point_index[res > self.params.ba_outlier_px])
         if len(bad_pt):
             bad_ids = problem.point_ids[bad_pt]
             self._map.keep(~np.isin(self._map.ids, bad_ids))

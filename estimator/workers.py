@@ -1,11 +1,12 @@
 """Worker threads for the numerical steps that may run beside the fusion's own.
 
 OpenCV releases the GIL in its calls and numpy in its array loops, so a step made of a few
-large array operations (the VO's backward LK, its local bundle adjustment, the landmark
-window's alternations) runs on the second core while the fusion goes on with the next
-frame. Each step is posed from a snapshot of its inputs and its result taken back on a fixed
-later frame, so the outcome is the same whatever the machine's speed; only the wall time
-depends on the overlap.
+large array operations (the VO's front end into the next frame and its backward LK, its
+local bundle adjustment, the landmark window's alternations) runs on the second core while
+the fusion goes on. Each step is posed from a snapshot of its inputs and its result taken
+back on a fixed later frame (the front end made ahead: on the next frame, and only if its
+inputs are still the VO's), so the outcome is the same whatever the machine's speed; only
+the wall time depends on the overlap.
 """
 
 from __future__ import annotations
