@@ -415,8 +415,9 @@ class CarrierPhaseCoupling:
         """The η rows the update takes (over the interval since the EKF's clone), in its
         order, and their innovations against the INS's prediction (m/s)."""
         taken = [r for r in eta if ekf.interval_ok(r.interval)]
-        return taken, np.array([r.measured - ekf.eta_model(r.antenna, r.u_ned, r.interval)[0]
-                                for r in taken])
+        pred = ekf.eta_rows([r.antenna for r in taken], [r.u_ned for r in taken],
+                            [r.interval for r in taken])[0]
+        return taken, np.array([r.measured for r in taken]) - pred
 
     @staticmethod
     def _fit(taken: Sequence[EtaInput], innovation: np.ndarray, ekf: ErrorStateEkf
@@ -488,18 +489,16 @@ class CarrierPhaseCoupling:
             return
         ix = ekf.ix
         P_D = ekf.covariance(ix.D)
-        A, y = [], []
-        for r in sd_rows:
-            pred, h = ekf.sd_model(r.ref, r.other, np.asarray(r.los_ned, float))
-            if h[ix.D] @ P_D @ h[ix.D] > ATTITUDE_DELAY_SIGMA_M ** 2:
-                continue
-            s = math.sqrt(2.0) * r.sigma_m  # the difference of two receivers' phases
-            A.append(h[ix.E] / s)
-            y.append((r.value_m - pred) / s)
-        A = np.array(A).reshape(-1, 3)
+        pred, H = ekf.sd_rows([r.ref for r in sd_rows], [r.other for r in sd_rows],
+                              [r.los_ned for r in sd_rows])
+        known = np.einsum("ij,jk,ik->i", H[:, ix.D], P_D, H[:, ix.D]) \
+            <= ATTITUDE_DELAY_SIGMA_M ** 2
+        s = math.sqrt(2.0) * np.array([r.sigma_m for r in sd_rows])  # two receivers' phases
+        A = (H[:, ix.E] / s[:, None])[known]
+        y = ((np.array([r.value_m for r in sd_rows]) - pred) / s)[known]
         if len(A) < MIN_ATTITUDE_ROWS or np.linalg.matrix_rank(A, tol=1e-6) < 3:
             return  # one baseline (two receivers left) cannot tell a turn about itself
-        fit = robust_lsq(A, np.array(y), MIN_ATTITUDE_ROWS)
+        fit = robust_lsq(A, y, MIN_ATTITUDE_ROWS)
         if fit is None or np.linalg.matrix_rank(A[fit[3]], tol=1e-6) < 3:
             return
         off, inv, spread, _keep = fit

@@ -166,6 +166,13 @@ def chi2_gate(dof: int, probability: float) -> float:
     return float(chi2.ppf(probability, dof))
 
 
+def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a × b of (m,3) arrays (``np.cross`` spends more on its axis handling than on
+    the arithmetic for the few rows of a GNSS epoch)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
 # ------------------------------------------------------------------------------ records
 
 
@@ -238,6 +245,24 @@ class VoMapping:
     C_world_to_level: np.ndarray
     scale: float
     origin_ned: np.ndarray
+
+
+@dataclass
+class _CarrierEpoch:
+    """What one carrier-phase epoch's satellites share while they are processed in turn:
+    the epoch's rows (y, H at the nominal), the state's cross-covariance with the previous
+    epoch's phase noise (``M_prev``, columns ``prev``) and with this epoch's (``M_new``, the
+    first ``n_new`` columns filled, keys ``new_keys``), and the results."""
+
+    prev: dict[tuple[int, str], int]
+    M_prev: np.ndarray
+    results: tuple[UpdateResult, UpdateResult]
+    rate_sigma: float
+    y: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    H: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    M_new: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    n_new: int = 0
+    new_keys: list[tuple[int, str]] = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------------- filter
@@ -516,12 +541,30 @@ class ErrorStateEkf:
     def eta_model(self, antenna: int, u_ned: np.ndarray, interval: float
                   ) -> tuple[float, np.ndarray]:
         """Predicted η row u·Δr̂_i/Δt + Ẑ and its H (y = measured − predicted = H x)."""
-        ix = self.ix
-        disp, J = self._displacement_rows(antenna)
-        z = ix.clock(antenna)
-        h = -(u_ned @ J) / interval
-        h[z] = -1.0
-        return float(u_ned @ disp / interval + self.clock_drift[z - ix.Z.start]), h
+        pred, H = self.eta_rows([antenna], np.reshape(u_ned, (1, 3)), [interval])
+        return float(pred[0]), H[0]
+
+    def eta_rows(self, antennas: Sequence[int], u_ned: np.ndarray, intervals: Sequence[float]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """``eta_model`` of m rows at once: antennas (m,), unit vectors (m,3), Δt (m,)."""
+        ix, s = self.ix, self.nominal
+        a = np.asarray(antennas, int)
+        U = np.asarray(u_ned, float).reshape(-1, 3)
+        dt = np.asarray(intervals, float)[:, None]
+        lever = self.lever_antennas[a]
+        c_now = lever @ s.C_body_to_level.T
+        c_then = lever @ self._clone_attitude.T
+        disp = (s.position_ned + c_now) - (self._clone_position + c_then)
+        z = a if ix.n_clocks > 1 else np.zeros_like(a)
+        # −u·(x_r − [c×]x_e − x_r⁻ + [c⁻×]x_e⁻)/Δt − x_Z, with u·[c×]x = (u × c)·x
+        H = np.zeros((len(a), ix.n))
+        H[:, ix.R] = -U / dt
+        H[:, ix.E] = _cross_rows(U, c_now) / dt
+        H[:, ix.R0] = U / dt
+        H[:, ix.E0] = -_cross_rows(U, c_then) / dt
+        H[np.arange(len(a)), ix.Z.start + z] = -1.0
+        pred = np.einsum("ij,ij->i", U, disp) / dt[:, 0] + self.clock_drift[z]
+        return pred, H
 
     def _displacement_rows(self, antenna: int) -> tuple[np.ndarray, np.ndarray]:
         """Predicted displacement of an antenna since the clone and ∂(it)/∂x (3 × n):
@@ -570,16 +613,24 @@ class ErrorStateEkf:
 
     def sd_model(self, i: int, j: int, e: np.ndarray) -> tuple[float, np.ndarray]:
         """Predicted λΦ_ij − λN_ij = e·Ĉ(l_j − l_i) + D̂_ij and its H (y = H x)."""
+        pred, H = self.sd_rows([i], [j], np.reshape(e, (1, 3)))
+        return float(pred[0]), H[0]
+
+    def sd_rows(self, refs: Sequence[int], others: Sequence[int], los_ned: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """``sd_model`` of m rows at once: receivers i (m,), j (m,), unit vectors e (m,3)."""
         ix = self.ix
-        c = self.nominal.C_body_to_level @ (self.lever_antennas[j] - self.lever_antennas[i])
-        h = np.zeros(ix.n)
-        h[ix.E] = (e[1] * c[2] - e[2] * c[1], e[2] * c[0] - e[0] * c[2], e[0] * c[1] - e[1] * c[0])
-        di, dj = ix.delay(i), ix.delay(j)
-        if dj is not None:
-            h[dj] -= 1.0
-        if di is not None:
-            h[di] += 1.0
-        return float(e @ c + self.delay_difference(i, j)), h
+        i, j = np.asarray(refs, int), np.asarray(others, int)
+        E = np.asarray(los_ned, float).reshape(-1, 3)
+        c = (self.lever_antennas[j] - self.lever_antennas[i]) @ self.nominal.C_body_to_level.T
+        H = np.zeros((len(i), ix.n))
+        H[:, ix.E] = _cross_rows(E, c)
+        rows = np.arange(len(i))
+        # D_ij = δ_j − δ_i (receiver 1, index 0, has no δ)
+        H[rows[j > 0], ix.D.start + j[j > 0] - 1] -= 1.0
+        H[rows[i > 0], ix.D.start + i[i > 0] - 1] += 1.0
+        d = np.concatenate([[0.0], self.delays])
+        return np.einsum("ij,ij->i", E, c) + d[j] - d[i], H
 
     def delay_difference(self, i: int, j: int) -> float:
         """D̂_ij = d_i − d_j = δ̂_j − δ̂_i (m)."""
@@ -609,69 +660,70 @@ class ErrorStateEkf:
         eta = [r for r in eta if self.interval_ok(r.interval)]
         valid = self._noise_time is not None and self.clone_time is not None \
             and abs(self._noise_time - self.clone_time) < 2e-3
-        prev = {k: c for c, k in enumerate(self._noise_keys)} if valid else {}
-        M_prev = self._noise_M if valid else np.zeros((self.ix.n, 0))
-        groups: dict[str, tuple[list[EtaInput], list[SdRow]]] = {}
-        for r in eta:
-            groups.setdefault(r.sat, ([], []))[0].append(r)
-        for r in sds:
-            groups.setdefault(r.sat, ([], []))[1].append(r)
-        results = (UpdateResult(kind="eta", rows=len(eta), accepted=0),
-                   UpdateResult(kind="zeta", rows=len(sds), accepted=0))
-        offsets = {}  # row index of each input in ``eta`` / ``sds`` for the rejected lists
-        offsets.update({id(r): k for k, r in enumerate(eta)})
-        offsets.update({id(r): k for k, r in enumerate(sds)})
-        new_keys: list[tuple[int, str]] = []
-        M_new = np.zeros((self.ix.n, 0))
-        for sat, (e_rows, s_rows) in groups.items():
-            M_prev, M_new, keys = self._carrier_satellite(
-                sat, e_rows, s_rows, prev, M_prev, M_new, results, offsets,
-                self.cfg.tdcp_rate_sigma if rate_sigma is None else rate_sigma)
-            new_keys += keys
-        self._feedback()  # once per epoch: the rows above were linearised at the same nominal
-        for res in results:
+        ep = _CarrierEpoch(
+            prev={k: c for c, k in enumerate(self._noise_keys)} if valid else {},
+            M_prev=self._noise_M if valid else np.zeros((self.ix.n, 0)),
+            results=(UpdateResult(kind="eta", rows=len(eta), accepted=0),
+                     UpdateResult(kind="zeta", rows=len(sds), accepted=0)),
+            rate_sigma=self.cfg.tdcp_rate_sigma if rate_sigma is None else rate_sigma)
+        # Every row is linearised at the same nominal (fed back once, after the epoch).
+        pe, He = self.eta_rows([r.antenna for r in eta], [r.u_ned for r in eta],
+                               [r.interval for r in eta])
+        ps, Hs = self.sd_rows([r.ref for r in sds], [r.other for r in sds],
+                              [r.los_ned for r in sds])
+        ep.y = np.concatenate([[r.measured for r in eta] - pe, [r.value_m for r in sds] - ps])
+        ep.H = np.vstack([He, Hs])
+        groups: dict[str, tuple[list[int], list[int]]] = {}
+        for k, r in enumerate(eta):
+            groups.setdefault(r.sat, ([], []))[0].append(k)
+        for q, r in enumerate(sds):
+            groups.setdefault(r.sat, ([], []))[1].append(q)
+        n_cols = sum(len({eta[k].antenna for k in e} | {sds[q].ref for q in s}
+                         | {sds[q].other for q in s}) for e, s in groups.values())
+        ep.M_new = np.zeros((self.ix.n, n_cols))
+        for sat, (e_idx, s_idx) in groups.items():
+            self._carrier_satellite(ep, sat, [eta[k] for k in e_idx], e_idx,
+                                    [sds[q] for q in s_idx], s_idx, len(eta))
+        self._feedback()
+        for res in ep.results:
             st = self.stats.setdefault(res.kind, GateStats())
             st.updates += 1 if res.accepted else 0
             st.accepted += res.accepted
             st.rejected += len(res.rejected)
             st.nis_sum += res.nis
             st.dof_sum += res.dof
-        self._noise_keys = new_keys
-        self._noise_M = M_new
+        self._noise_keys = ep.new_keys
+        self._noise_M = ep.M_new
         self._noise_time = self.time
-        return results[0], results[1]
+        return ep.results
 
-    def _carrier_satellite(self, sat: str, e_rows: list[EtaInput], s_rows: list[SdRow],
-                           prev: dict[tuple[int, str], int], M_prev: np.ndarray,
-                           M_new: np.ndarray, results: tuple[UpdateResult, UpdateResult],
-                           offsets: dict[int, int], rate_sigma: float
-                           ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
-        """One satellite's η and ζ rows: y = H x + A n_k + (own noise), cov(x, v) = Cxv."""
-        ix, cfg = self.ix, self.cfg
+    def _carrier_satellite(self, ep: _CarrierEpoch, sat: str, e_rows: list[EtaInput],
+                           e_idx: list[int], s_rows: list[SdRow], s_idx: list[int],
+                           n_eta_all: int) -> None:
+        """One satellite's η and ζ rows (indices ``e_idx`` into the epoch's η, ``s_idx`` into
+        its ζ): y = H x + A n_k + (own noise), cov(x, v) = Cxv."""
+        ix = self.ix
         rx = sorted({r.antenna for r in e_rows} | {r.ref for r in s_rows}
                     | {r.other for r in s_rows})
         col = {a: c for c, a in enumerate(rx)}
+        n_eta = len(e_rows)
+        m = n_eta + len(s_rows)
+        rows = np.array(e_idx + [n_eta_all + q for q in s_idx], int)
+        y, H = ep.y[rows], ep.H[rows]
         sig = np.zeros(len(rx))
-        m = len(e_rows) + len(s_rows)
-        y = np.zeros(m)
-        H = np.zeros((m, ix.n))
         A = np.zeros((m, len(rx)))
         R_own = np.zeros(m)  # noise not shared with other rows: n_{k−1} of η, TDCP rate
         Cxv = np.zeros((ix.n, m))
         for k, r in enumerate(e_rows):
-            pred, H[k] = self.eta_model(r.antenna, r.u_ned, r.interval)
-            y[k] = r.measured - pred
             s_phase = r.sigma * r.interval / math.sqrt(2.0)
             sig[col[r.antenna]] = s_phase
             A[k, col[r.antenna]] = 1.0 / r.interval
             R_own[k] = (s_phase / r.interval) ** 2
-            c = prev.get((r.antenna, sat))
+            c = ep.prev.get((r.antenna, sat))
             if c is not None:
-                Cxv[:, k] = -M_prev[:, c] / r.interval
+                Cxv[:, k] = -ep.M_prev[:, c] / r.interval
         for q, r in enumerate(s_rows):
-            k = len(e_rows) + q
-            pred, H[k] = self.sd_model(r.ref, r.other, np.asarray(r.los_ned, float))
-            y[k] = r.value_m - pred
+            k = n_eta + q
             sig[col[r.ref]] = sig[col[r.ref]] or r.sigma_m
             sig[col[r.other]] = sig[col[r.other]] or r.sigma_m
             A[k, col[r.ref]] = 1.0
@@ -680,30 +732,32 @@ class ErrorStateEkf:
         R = (A * Sig) @ A.T + np.diag(R_own)
         # The TDCP's unmodelled rate (the atmosphere's change, multipath) is the satellite's:
         # one for the four antennas 10 cm apart, not four independent ones.
-        n_eta = len(e_rows)
-        R[:n_eta, :n_eta] += rate_sigma**2
-        y = y - H @ self.kf.x.ravel()  # errors estimated from the satellites done so far
+        R[:n_eta, :n_eta] += ep.rate_sigma**2
+        y = y - H @ self.kf.x[:, 0]  # errors estimated from the satellites done so far
         P = self.kf.P
         PHt = P @ H.T + Cxv
         S = H @ PHt + Cxv.T @ H.T + R
-        ok = y**2 / np.diag(S) <= chi2_gate(1, cfg.gate_probability)
+        ok = y**2 / np.diag(S) <= chi2_gate(1, self.cfg.gate_probability)
         keep = np.flatnonzero(ok)
-        kinds = np.array([0] * len(e_rows) + [1] * len(s_rows))
-        inputs: list[EtaInput | SdRow] = [*e_rows, *s_rows]
-        for k in np.flatnonzero(~ok):
-            results[kinds[k]].rejected.append(offsets[id(inputs[k])])
+        is_sd = np.arange(m) >= n_eta
+        ep.results[0].rejected.extend(e_idx[k] for k in np.flatnonzero(~ok & ~is_sd))
+        ep.results[1].rejected.extend(s_idx[k - n_eta] for k in np.flatnonzero(~ok & is_sd))
+        cols = slice(ep.n_new, ep.n_new + len(rx))
+        ep.n_new = cols.stop
+        ep.new_keys += [(a, sat) for a in rx]
         if len(keep) == 0:
-            return M_prev, np.hstack([M_new, np.zeros((ix.n, len(rx)))]), \
-                [(a, sat) for a in rx]
+            return
+        S_kk = S[np.ix_(keep, keep)]
         for kind in (0, 1):
-            kk = keep[kinds[keep] == kind]
+            kk = np.flatnonzero(is_sd[keep] == bool(kind))
             if len(kk):
-                res = results[kind]
+                res = ep.results[kind]
                 res.accepted += len(kk)
                 res.dof += len(kk)
-                res.nis += float(y[kk] @ np.linalg.solve(S[np.ix_(kk, kk)], y[kk]))
+                res.nis += float(y[keep[kk]] @ np.linalg.solve(S_kk[np.ix_(kk, kk)],
+                                                               y[keep[kk]]))
         Hk, Ck, Ak = H[keep], Cxv[:, keep], A[keep]
-        K = np.linalg.solve(S[np.ix_(keep, keep)], PHt[:, keep].T).T
+        K = np.linalg.solve(S_kk, PHt[:, keep].T).T
         self.kf.x = self.kf.x + K @ y[keep].reshape(-1, 1)
         IKH = np.eye(ix.n) - K @ Hk
         cross = IKH @ Ck @ K.T
@@ -711,8 +765,9 @@ class ErrorStateEkf:
         self.kf.P = 0.5 * (P + P.T)
         # The state's cross-covariance with the other noises: n_{k−1} and this epoch's noise
         # of the satellites done so far (both independent of this satellite's v).
-        return IKH @ M_prev, np.hstack([IKH @ M_new, -(K @ Ak) * Sig]), \
-            [(a, sat) for a in rx]
+        ep.M_prev = IKH @ ep.M_prev
+        ep.M_new[:, :cols.start] = IKH @ ep.M_new[:, :cols.start]
+        ep.M_new[:, cols] = -(K @ Ak) * Sig
 
     def update_position(self, centre_ned: np.ndarray, covariance: np.ndarray) -> UpdateResult:
         """Standalone position of the array centre in L (loose, thesis y_r)."""
