@@ -41,10 +41,11 @@ filter keeps the cross-covariance of its state with that previous noise, so cons
 intervals telescope as they physically do (the integrated trajectory is as good as the phase at
 its two ends) instead of random-walking; this is what keeps the position covariance honest.
 
-The Kalman bookkeeping (predict and the uncorrelated updates, Joseph form) is filterpy's
-``KalmanFilter``; the correlated carrier-phase update is written out here. F, Q, H and R are
-built per step. Every measurement is χ²-gated against the prior (row by row for η and ζ, as a
-vector for r, v, Θ, d); rejections are counted in ``stats``.
+The Kalman bookkeeping of the uncorrelated updates (Joseph form) is filterpy's
+``KalmanFilter``; the correlated carrier-phase update and the time update (by blocks,
+``flush``) are written out here. F, Q, H and R are built per step. Every measurement is
+χ²-gated against the prior (row by row for η and ζ, as a vector for r, v, Θ, d); rejections
+are counted in ``stats``.
 """
 
 from __future__ import annotations
@@ -364,24 +365,29 @@ class ErrorStateEkf:
                 self.flush()
 
     def flush(self) -> None:
-        """Propagate P over the accumulated interval (thesis P_{t+1/t} = F P Fᵀ + Q)."""
+        """Propagate P over the accumulated interval (thesis P_{t+1/t} = F P Fᵀ + Q).
+
+        By blocks: Φ is the INS block's transition and a diagonal elsewhere (the Gauss–Markov
+        factors, 1 for the clones), and Q_c is diagonal. Done densely (filterpy's predict),
+        every n × n allocation, product and sum released the GIL, and at each of them the
+        fusion's thread waited for a busy worker thread to give it back (~0.5 ms a flush
+        beside the VO's look-ahead); the blocks are small enough to keep it."""
         dt = self._acc_dt
         if dt <= 0.0:
             return
         f_mean = self._acc_f / dt
         self._acc_dt, self._acc_f = 0.0, np.zeros(3)
         cfg, ix, ins = self.cfg, self.ix, self.ins
-        C = self.nominal.C_body_to_level
-        Phi = np.eye(ix.n)
-        Phi[ix.INS, ix.INS] = error_state_transition(
-            dt, C, f_mean, ins.origin_llh, math.inf, math.inf,  # random-walk biases
-            ins.gyro_correction, ins.accel_correction, self._gamma)
+        Phi = error_state_transition(
+            dt, self.nominal.C_body_to_level, f_mean, ins.origin_llh, math.inf, math.inf,
+            ins.gyro_correction, ins.accel_correction, self._gamma)  # random-walk biases
         q = np.zeros(ix.n)  # white-noise densities on the diagonal of Q_c
         q[ix.V] = cfg.accel_vrw**2
         q[ix.E] = cfg.gyro_arw**2
         q[ix.BG] = 2.0 * cfg.gyro_bias_sigma**2 / cfg.gyro_bias_tau
         q[ix.BA] = 2.0 * cfg.accel_bias_sigma**2 / cfg.accel_bias_tau
-        speed = float(np.linalg.norm(self.nominal.velocity_ned))
+        d = np.ones(ix.n)  # the diagonal of Φ outside the INS block
+        speed = math.hypot(*self.nominal.velocity_ned)  # (no BLAS call: see rotvec_to_dcm)
         s2 = self.vo.scale**2 if self.vo is not None else 1.0
         # Gauss–Markov blocks: F_XX = (1 − Δt/T_X) I  (thesis)
         for block, tau, psd in (
@@ -391,14 +397,28 @@ class ErrorStateEkf:
             (ix.S, cfg.vo_scale_tau, (cfg.vo_scale_psd + cfg.vo_scale_per_m * speed) * s2),
             (ix.DV, cfg.vo_drift_tau, cfg.vo_drift_psd + cfg.vo_drift_per_m * speed),
         ):
-            idx = np.arange(block.start, block.stop)
-            Phi[idx, idx] = 1.0 - dt / tau
+            d[block] = 1.0 - dt / tau
             q[block] = psd
+        I, O = ix.INS, slice(ix.INS.stop, ix.n)
+        d, qI, qO = d[O], q[I], q[O]
         # Q_d = ½ (Φ Q_c Φᵀ + Q_c) Δt (trapezoid; gives the Q_rv, Q_rr of the thesis' Q).
-        Qc = np.diag(q)
-        Qd = 0.5 * (Phi @ Qc @ Phi.T + Qc) * dt
-        self.kf.predict(F=Phi, Q=Qd)
-        self._noise_M = Phi @ self._noise_M
+        # P's blocks symmetrised first: the updates leave it asymmetric by rounding (1e-12),
+        # and a cross block taken from one side only while the others keep theirs makes a P
+        # that is no covariance (the no-carrier-phase INS+VO run went 1.7 -> 270 m so).
+        P, P_new = self.kf.P, np.empty_like(self.kf.P)
+        kI, kO = np.arange(I.stop - I.start), np.arange(O.stop - O.start)
+        P_II = Phi @ (0.5 * (P[I, I] + P[I, I].T)) @ Phi.T + 0.5 * dt * ((Phi * qI) @ Phi.T)
+        P_II[kI, kI] += 0.5 * dt * qI
+        P_OO = 0.5 * (P[O, O] + P[O, O].T) * np.outer(d, d)
+        P_OO[kO, kO] += 0.5 * dt * (d * d + 1.0) * qO
+        P_new[I, I], P_new[O, O] = P_II, P_OO
+        P_new[I, O] = (Phi @ (0.5 * (P[I, O] + P[O, I].T))) * d
+        P_new[O, I] = P_new[I, O].T
+        self.kf.P = P_new
+        x = self.kf.x  # (zero between updates: the errors are fed back)
+        x[I], x[O] = Phi @ x[I], d[:, None] * x[O]
+        M = self._noise_M
+        self._noise_M = np.vstack([Phi @ M[I], d[:, None] * M[O]])
 
     # ------------------------------------------------------------------- state surgery
 

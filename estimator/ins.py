@@ -308,6 +308,8 @@ class Ins:
 
 ERROR_STATE_SIZE = 15
 IDX_R, IDX_V, IDX_E, IDX_W, IDX_A = (slice(3 * i, 3 * i + 3) for i in range(5))
+_ZERO_15 = np.zeros((ERROR_STATE_SIZE, ERROR_STATE_SIZE))
+_EYE_15 = np.eye(ERROR_STATE_SIZE)
 
 
 def error_state_matrix(
@@ -334,7 +336,7 @@ def error_state_matrix(
     A = np.eye(3) if accel_correction is None else accel_correction
     Gam = gravity_gradient_level(origin_llh) if gravity_gradient is None else gravity_gradient
     W = skew(earth_rate_level(origin_llh[0]))
-    F = np.zeros((ERROR_STATE_SIZE, ERROR_STATE_SIZE))
+    F = _ZERO_15.copy()  # (np.zeros of this size releases the GIL: ekf.flush)
     F[IDX_R, IDX_V] = np.eye(3)
     F[IDX_V, IDX_R] = Gam
     F[IDX_V, IDX_V] = -2.0 * W
@@ -363,7 +365,7 @@ def error_state_transition(
     Fdt = dt * error_state_matrix(
         C_body_to_level, specific_force_level, origin_llh, gyro_bias_tau, accel_bias_tau,
         gyro_correction, accel_correction, gravity_gradient)
-    return np.eye(ERROR_STATE_SIZE) + Fdt + 0.5 * Fdt @ Fdt
+    return _EYE_15 + Fdt + 0.5 * Fdt @ Fdt
 
 
 class RateSmoother:

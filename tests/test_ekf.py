@@ -183,6 +183,63 @@ def test_an_unmeasured_bias_keeps_its_turn_on_uncertainty():
         assert np.all(after[block] >= before[block]), (block, before[block], after[block])
 
 
+def test_the_time_update_by_blocks_is_the_dense_one():
+    """``flush`` propagates P by blocks (the INS block's Φ, a diagonal elsewhere): it must be
+    Φ P Φᵀ + ½ (Φ Q_c Φᵀ + Q_c) Δt of the dense Φ, for a P with every block filled (a VO
+    segment, correlations everywhere) and the rounding asymmetry the updates leave in it, and
+    carry the carrier-phase noise cross-covariance as Φ M."""
+    import math
+
+    from estimator.ins import error_state_transition
+
+    origin = np.array([np.radians(34.72), np.radians(135.33), 37.0])
+    C = euler_to_dcm(0.03, -0.02, 0.7)
+    for common_clock in (True, False):
+        ins = Ins(origin, ImuCalibration(), InsState(0.0, np.zeros(3), np.array([2.0, 0.5, 0.0]),
+                                                     C))
+        ekf = ErrorStateEkf(ins, SMALL_BOAT.antennas_body(), common_clock=common_clock)
+        ekf.start_vo_segment(0, C.T, np.array([0.2, 0.1, 1.0]), 3.0, 1.0)
+        ix, n = ekf.ix, ekf.ix.n
+        rng = np.random.default_rng(5)
+        A = rng.normal(size=(n, n)) * rng.uniform(0.01, 3.0, n)
+        P = A @ A.T
+        P[3, 20] *= 1.0 + 1e-12  # the asymmetry of a Joseph update's rounding
+        ekf.kf.P = P.copy()
+        ekf._noise_M = rng.normal(size=(n, 9))
+        M = ekf._noise_M.copy()
+        gyro, accel = np.array([0.01, -0.02, 0.15]), np.array([0.3, 0.1, -9.8])
+        for k in range(1, 5):  # under covariance_interval_s: accumulated, not flushed
+            ekf.propagate(0.01 * k, gyro, accel)
+        dt, f_mean = ekf._acc_dt, ekf._acc_f / ekf._acc_dt
+        cfg = ekf.cfg
+        Phi = np.eye(n)
+        Phi[ix.INS, ix.INS] = error_state_transition(
+            dt, ekf.nominal.C_body_to_level, f_mean, origin, math.inf, math.inf,
+            ins.gyro_correction, ins.accel_correction, ekf._gamma)
+        q = np.zeros(n)
+        q[ix.V], q[ix.E] = cfg.accel_vrw**2, cfg.gyro_arw**2
+        q[ix.BG] = 2.0 * cfg.gyro_bias_sigma**2 / cfg.gyro_bias_tau
+        q[ix.BA] = 2.0 * cfg.accel_bias_sigma**2 / cfg.accel_bias_tau
+        speed = float(np.linalg.norm(ekf.nominal.velocity_ned))
+        for block, tau, psd in (
+                (ix.D, cfg.delay_tau, 2.0 * cfg.delay_sigma**2 / cfg.delay_tau),
+                (ix.Z, cfg.clock_drift_tau, cfg.clock_drift_psd),
+                (ix.TH, cfg.vo_attitude_tau, cfg.vo_attitude_psd + cfg.vo_attitude_per_m * speed),
+                (ix.S, cfg.vo_scale_tau,
+                 (cfg.vo_scale_psd + cfg.vo_scale_per_m * speed) * ekf.vo.scale**2),
+                (ix.DV, cfg.vo_drift_tau, cfg.vo_drift_psd + cfg.vo_drift_per_m * speed)):
+            k = np.arange(block.start, block.stop)
+            Phi[k, k] = 1.0 - dt / tau
+            q[block] = psd
+        Ps = 0.5 * (P + P.T)
+        expected = Phi @ Ps @ Phi.T + 0.5 * (Phi @ np.diag(q) @ Phi.T + np.diag(q)) * dt
+        ekf.flush()
+        scale = np.sqrt(np.outer(np.diag(expected), np.diag(expected)))
+        assert np.max(np.abs(ekf.P - expected) / scale) < 1e-13
+        assert np.max(np.abs(ekf.P - ekf.P.T) / scale) < 1e-15  # symmetric to rounding
+        np.testing.assert_allclose(ekf._noise_M, Phi @ M, rtol=1e-13, atol=1e-14)
+
+
 def test_ins_cpp_consistency_and_accuracy(sim):
     """All satellites: NEES of position, velocity and attitude within chi-square bounds;
     horizontal error σ ≤ 5 cm (thesis table 17: 4.8 cm), heading error σ ≤ 0.2° (table 20:

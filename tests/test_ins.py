@@ -304,3 +304,20 @@ def test_the_rate_shown_is_smoothed_as_much_as_the_motion_allows(ship: str) -> N
     else:
         assert rms < 1.2 * raw_rms, (rms, raw_rms)  # as good as the samples, not 0.4°/s late
     assert np.mean(np.abs(err) <= 2.0 * sig[after]) > 0.9
+
+
+def test_rotvec_to_dcm_is_scipys_rotation_from_tiny_to_large_angles() -> None:
+    """``rotvec_to_dcm`` (Rodrigues in Python floats) against scipy's rotation, and back."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    for size in (0.0, 1e-13, 1e-9, 1e-4, 0.1, 1.0, 3.0):
+        for _ in range(50):
+            v = rng.normal(size=3)
+            v *= size * rng.uniform(0.5, 1.0) / np.linalg.norm(v)
+            C = rotvec_to_dcm(v)
+            np.testing.assert_allclose(C, Rotation.from_rotvec(v).as_matrix(), rtol=0,
+                                       atol=1e-15)
+            np.testing.assert_allclose(C @ C.T, np.eye(3), rtol=0, atol=1e-15)
+            if size >= 1e-9:
+                np.testing.assert_allclose(dcm_to_rotvec(C), v, rtol=1e-9, atol=1e-15)
