@@ -28,6 +28,7 @@ from .frames import (
     SECONDS_PER_WEEK,
     SPEED_OF_LIGHT,
     elevation_azimuth,
+    vector_length,
 )
 from .records import GlonassEphemeris, KeplerEphemeris, NavigationData
 
@@ -340,7 +341,7 @@ def satellite_geometry(
     for _ in range(10):
         for _ in range(10):  # contraction factor ~ v_sat / c
             p = state.position + state.velocity * (tau_eval - tau)
-            new_tau = float(np.linalg.norm(rotate_earth(p, OMEGA_EARTH * tau) - rx))
+            new_tau = vector_length(rotate_earth(p, OMEGA_EARTH * tau) - rx)
             new_tau /= SPEED_OF_LIGHT
             done = abs(new_tau - tau) < 1e-15
             tau = new_tau
@@ -355,7 +356,7 @@ def satellite_geometry(
     vel = rotate_earth(state.velocity, OMEGA_EARTH * tau)
     clock = state.clock_bias + state.clock_drift * dt
     diff = pos - rx
-    rng = float(np.linalg.norm(diff))
+    rng = vector_length(diff)
     el, az = elevation_azimuth(rx, pos)
     return Geometry(
         sat=sat,

@@ -94,12 +94,17 @@ def dcm_to_euler(C_body_to_level: np.ndarray) -> np.ndarray:
     return np.array([roll, pitch, yaw])
 
 
-def rotvec_to_dcm(phi: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation matrix exp([phi x]) = I + sin θ [k×] + (1 − cos θ) [k×]².
+def vector_length(v: np.ndarray) -> float:
+    """Euclidean length of a short vector, in Python floats. ``np.linalg.norm`` of a 3-vector
+    is a BLAS dot, which releases the GIL: the fusion's thread then waits to get it back
+    while a worker thread runs Python (0.2–0.4 ms a call beside a busy thread, against
+    3 µs; ``benchmarks/README.md``, stop 56). For the per-sample and per-satellite paths."""
+    return math.hypot(*v)
 
-    In Python floats: it runs at every IMU sample, and ``np.linalg.norm`` (a BLAS dot)
-    releases the GIL, so the fusion's thread waited for it each time another thread held it
-    (the convoy effect: ~0.1–0.4 ms a call beside a busy thread, against 2 µs)."""
+
+def rotvec_to_dcm(phi: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation matrix exp([phi x]) = I + sin θ [k×] + (1 − cos θ) [k×]², in
+    Python floats (it runs at every IMU sample: see ``vector_length``)."""
     x, y, z = np.asarray(phi, float).ravel().tolist()
     angle = math.sqrt(x * x + y * y + z * z)
     if angle < 1e-12:

@@ -36,6 +36,7 @@ from .frames import (
     SPEED_OF_LIGHT,
     C_ecef_to_level,
     ecef_to_geodetic,
+    vector_length,
 )
 from .records import GnssEpoch, NavigationData
 
@@ -149,17 +150,17 @@ def _linearise(
     near_surface = False
     llh = None
     C_el = None
-    if np.linalg.norm(pos) > 1e6:
+    if vector_length(pos) > 1e6:
         llh = ecef_to_geodetic(pos)
         near_surface = abs(llh[2]) < 1e5
         C_el = C_ecef_to_level(llh[0], llh[1])
     rows, used = [], []
     for ob in obs:
         r_sat = ob.state.position
-        rng = float(np.linalg.norm(r_sat - pos))
+        rng = vector_length(r_sat - pos)
         for _ in range(2):  # Earth rotation during the flight (Sagnac)
             rotated = rotate_earth(r_sat, OMEGA_EARTH * rng / SPEED_OF_LIGHT)
-            rng = float(np.linalg.norm(rotated - pos))
+            rng = vector_length(rotated - pos)
         los = (rotated - pos) / rng
         model = rng - SPEED_OF_LIGHT * ob.state.clock_bias
         if near_surface:
@@ -276,7 +277,7 @@ def standalone_position(
             pos = pos + dx[:3]
             for j, s in enumerate(lin.systems):
                 clocks[s] += dx[3 + j]
-            if np.linalg.norm(dx) < _CONVERGED_M:
+            if vector_length(dx) < _CONVERGED_M:
                 converged = True
                 break
         if not converged:

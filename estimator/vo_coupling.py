@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 
 from .ekf import EkfConfig, ErrorStateEkf, chi2_gate
-from .frames import dcm_to_rotvec
+from .frames import dcm_to_rotvec, vector_length
 from .integrity import IntegrityMonitor
 from .landmarks import (
     LandmarkMap,
@@ -186,9 +186,9 @@ class VoConsistency:
         # camera at the start → camera now: by the VO, and by the gyro through the mounting
         R_vo = now.C_world_to_camera @ old.C_world_to_camera.T
         R_gyro = self.C_cb.T @ now.C_gyro.T @ old.C_gyro @ self.C_cb
-        angle = float(np.linalg.norm(dcm_to_rotvec(R_vo @ R_gyro.T)))
-        travel = float(np.linalg.norm(now.camera_position_ned - old.camera_position_ned))
-        rate = float(np.linalg.norm(dcm_to_rotvec(R_gyro))) / max(now.t - old.t, 1e-6)
+        angle = vector_length(dcm_to_rotvec(R_vo @ R_gyro.T))
+        travel = vector_length(now.camera_position_ned - old.camera_position_ned)
+        rate = vector_length(dcm_to_rotvec(R_gyro)) / max(now.t - old.t, 1e-6)
         var = (cfg.vo_attitude_psd * (now.t - old.t) + cfg.vo_attitude_per_m * travel
                + 2.0 * (rate * self.time_sigma) ** 2)  # both ends' stamps
         return VoDisagreement("rotation", angle, now.t - old.t, angle**2 / var)
@@ -196,12 +196,12 @@ class VoConsistency:
     def _direction(self, old: _Seen, now: _Seen) -> VoDisagreement | None:
         cfg = self.cfg
         fused = old.C_level_to_camera @ (now.camera_position_ned - old.camera_position_ned)
-        travel = float(np.linalg.norm(fused))
+        travel = vector_length(fused)
         vo = old.C_world_to_camera @ (now.camera_position_world - old.camera_position_world)
-        if travel < MIN_TRAVEL_M or not np.linalg.norm(vo) > 0.0:
+        if travel < MIN_TRAVEL_M or not vector_length(vo) > 0.0:
             return None
-        u = vo / np.linalg.norm(vo)
-        across = float(np.linalg.norm(fused - (fused @ u) * u))  # m, off the VO's direction
+        u = vo / vector_length(vo)
+        across = vector_length(fused - (fused @ u) * u)  # m, off the VO's direction
         # the fused displacement's error across u (per axis of the 2 across it): its velocity
         # error held over the window, the larger of the two ends'
         Q = np.eye(3) - np.outer(u, u)
