@@ -59,7 +59,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 from scipy.stats import chi2
 
-from .frames import dcm_to_rotvec, orthonormalize, rotvec_to_dcm, skew
+from .frames import dcm_to_rotvec, orthonormalize, rotvec_to_dcm, skew, vector_length
 from .ins import IDX_A, IDX_E, IDX_R, IDX_V, IDX_W, Ins, error_state_transition
 from .ins import gravity_gradient_level as _gravity_gradient
 
@@ -251,10 +251,13 @@ class VoMapping:
 @dataclass
 class _CarrierEpoch:
     """What one carrier-phase epoch's satellites share while they are processed in turn:
-    the epoch's rows (y, H at the nominal), the state's cross-covariance with the previous
-    epoch's phase noise (``M_prev``, columns ``prev``) and with this epoch's (``M_new``, the
-    first ``n_new`` columns filled, keys ``new_keys``), and the results."""
+    its η and ζ inputs and their rows (y, H at the nominal, η first), the state's
+    cross-covariance with the previous epoch's phase noise (``M_prev``, columns ``prev``) and
+    with this epoch's (``M_new``, the first ``n_new`` columns filled, keys ``new_keys``), and
+    the results."""
 
+    eta: list[EtaInput]
+    sds: Sequence[SdRow]
     prev: dict[tuple[int, str], int]
     M_prev: np.ndarray
     results: tuple[UpdateResult, UpdateResult]
@@ -386,8 +389,8 @@ class ErrorStateEkf:
         q[ix.E] = cfg.gyro_arw**2
         q[ix.BG] = 2.0 * cfg.gyro_bias_sigma**2 / cfg.gyro_bias_tau
         q[ix.BA] = 2.0 * cfg.accel_bias_sigma**2 / cfg.accel_bias_tau
-        d = np.ones(ix.n)  # the diagonal of Φ outside the INS block
-        speed = math.hypot(*self.nominal.velocity_ned)  # (no BLAS call: see rotvec_to_dcm)
+        phi_diag = np.ones(ix.n)  # Φ's diagonal outside the INS block
+        speed = vector_length(self.nominal.velocity_ned)
         s2 = self.vo.scale**2 if self.vo is not None else 1.0
         # Gauss–Markov blocks: F_XX = (1 − Δt/T_X) I  (thesis)
         for block, tau, psd in (
@@ -397,10 +400,10 @@ class ErrorStateEkf:
             (ix.S, cfg.vo_scale_tau, (cfg.vo_scale_psd + cfg.vo_scale_per_m * speed) * s2),
             (ix.DV, cfg.vo_drift_tau, cfg.vo_drift_psd + cfg.vo_drift_per_m * speed),
         ):
-            d[block] = 1.0 - dt / tau
+            phi_diag[block] = 1.0 - dt / tau
             q[block] = psd
         I, O = ix.INS, slice(ix.INS.stop, ix.n)
-        d, qI, qO = d[O], q[I], q[O]
+        d, qI, qO = phi_diag[O], q[I], q[O]
         # Q_d = ½ (Φ Q_c Φᵀ + Q_c) Δt (trapezoid; gives the Q_rv, Q_rr of the thesis' Q).
         # P's blocks symmetrised first: the updates leave it asymmetric by rounding (1e-12),
         # and a cross block taken from one side only while the others keep theirs makes a P
@@ -567,14 +570,11 @@ class ErrorStateEkf:
     def eta_rows(self, antennas: Sequence[int], u_ned: np.ndarray, intervals: Sequence[float]
                  ) -> tuple[np.ndarray, np.ndarray]:
         """``eta_model`` of m rows at once: antennas (m,), unit vectors (m,3), Δt (m,)."""
-        ix, s = self.ix, self.nominal
+        ix = self.ix
         a = np.asarray(antennas, int)
         U = np.asarray(u_ned, float).reshape(-1, 3)
         dt = np.asarray(intervals, float)[:, None]
-        lever = self.lever_antennas[a]
-        c_now = lever @ s.C_body_to_level.T
-        c_then = lever @ self._clone_attitude.T
-        disp = (s.position_ned + c_now) - (self._clone_position + c_then)
+        c_now, c_then, disp = self._displacements(a)
         z = a if ix.n_clocks > 1 else np.zeros_like(a)
         # −u·(x_r − [c×]x_e − x_r⁻ + [c⁻×]x_e⁻)/Δt − x_Z, with u·[c×]x = (u × c)·x
         H = np.zeros((len(a), ix.n))
@@ -586,15 +586,21 @@ class ErrorStateEkf:
         pred = np.einsum("ij,ij->i", U, disp) / dt[:, 0] + self.clock_drift[z]
         return pred, H
 
+    def _displacements(self, antennas: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Antennas' lever arms in L now and at the clone (c, c⁻) and their predicted
+        displacements since the clone, (m, 3) each."""
+        s = self.nominal
+        lever = self.lever_antennas[antennas]
+        c_now = lever @ s.C_body_to_level.T
+        c_then = lever @ self._clone_attitude.T
+        return c_now, c_then, (s.position_ned + c_now) - (self._clone_position + c_then)
+
     def _displacement_rows(self, antenna: int) -> tuple[np.ndarray, np.ndarray]:
         """Predicted displacement of an antenna since the clone and ∂(it)/∂x (3 × n):
         error = x_r − [c×]x_e − x_r⁻ + [c⁻×]x_e⁻."""
         ix = self.ix
-        lever = self.lever_antennas[antenna]
-        s = self.nominal
-        c_now = s.C_body_to_level @ lever
-        c_then = self._clone_attitude @ lever
-        disp = (s.position_ned + c_now) - (self._clone_position + c_then)
+        (c_now,), (c_then,), (disp,) = self._displacements(np.array([antenna]))
         J = np.zeros((3, ix.n))
         J[:, ix.R] = np.eye(3)
         J[:, ix.E] = -skew(c_now)
@@ -681,6 +687,7 @@ class ErrorStateEkf:
         valid = self._noise_time is not None and self.clone_time is not None \
             and abs(self._noise_time - self.clone_time) < 2e-3
         ep = _CarrierEpoch(
+            eta=eta, sds=sds,
             prev={k: c for c, k in enumerate(self._noise_keys)} if valid else {},
             M_prev=self._noise_M if valid else np.zeros((self.ix.n, 0)),
             results=(UpdateResult(kind="eta", rows=len(eta), accepted=0),
@@ -698,12 +705,9 @@ class ErrorStateEkf:
             groups.setdefault(r.sat, ([], []))[0].append(k)
         for q, r in enumerate(sds):
             groups.setdefault(r.sat, ([], []))[1].append(q)
-        n_cols = sum(len({eta[k].antenna for k in e} | {sds[q].ref for q in s}
-                         | {sds[q].other for q in s}) for e, s in groups.values())
-        ep.M_new = np.zeros((self.ix.n, n_cols))
+        ep.M_new = np.zeros((self.ix.n, _N_RX * len(groups)))  # at most, trimmed below
         for sat, (e_idx, s_idx) in groups.items():
-            self._carrier_satellite(ep, sat, [eta[k] for k in e_idx], e_idx,
-                                    [sds[q] for q in s_idx], s_idx, len(eta))
+            self._carrier_satellite(ep, sat, e_idx, s_idx)
         self._feedback()
         for res in ep.results:
             st = self.stats.setdefault(res.kind, GateStats())
@@ -713,22 +717,22 @@ class ErrorStateEkf:
             st.nis_sum += res.nis
             st.dof_sum += res.dof
         self._noise_keys = ep.new_keys
-        self._noise_M = ep.M_new
+        self._noise_M = ep.M_new[:, :ep.n_new]
         self._noise_time = self.time
         return ep.results
 
-    def _carrier_satellite(self, ep: _CarrierEpoch, sat: str, e_rows: list[EtaInput],
-                           e_idx: list[int], s_rows: list[SdRow], s_idx: list[int],
-                           n_eta_all: int) -> None:
+    def _carrier_satellite(self, ep: _CarrierEpoch, sat: str, e_idx: list[int],
+                           s_idx: list[int]) -> None:
         """One satellite's η and ζ rows (indices ``e_idx`` into the epoch's η, ``s_idx`` into
         its ζ): y = H x + A n_k + (own noise), cov(x, v) = Cxv."""
         ix = self.ix
+        e_rows, s_rows = [ep.eta[k] for k in e_idx], [ep.sds[q] for q in s_idx]
         rx = sorted({r.antenna for r in e_rows} | {r.ref for r in s_rows}
                     | {r.other for r in s_rows})
         col = {a: c for c, a in enumerate(rx)}
         n_eta = len(e_rows)
         m = n_eta + len(s_rows)
-        rows = np.array(e_idx + [n_eta_all + q for q in s_idx], int)
+        rows = np.array(e_idx + [len(ep.eta) + q for q in s_idx], int)
         y, H = ep.y[rows], ep.H[rows]
         sig = np.zeros(len(rx))
         A = np.zeros((m, len(rx)))

@@ -46,6 +46,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from .compass import MIN_RECEIVERS
+from .frames import vector_length
 from .vo import VisualOdometry, VoOutput, WorkingImage
 
 MODES = ("fused", "coasting", "aligning", "no position")
@@ -253,10 +254,10 @@ class IntegrityMonitor:
                              "times): its data are not used")
             return False
         self.clear("imu-frozen", t, "IMU samples vary again")
-        rate, force = math.hypot(*gyro), math.hypot(*accel)  # 3-vectors: no np.linalg.norm
+        rate, force = vector_length(gyro), vector_length(accel)
         spike = prev is not None and (
-            math.hypot(*(gyro - prev[0])) > cfg.max_rate_step
-            or math.hypot(*(accel - prev[1])) > cfg.max_force_step)
+            vector_length(gyro - prev[0]) > cfg.max_rate_step
+            or vector_length(accel - prev[1]) > cfg.max_force_step)
         if rate > cfg.max_rate_rad_s or force > cfg.max_specific_force or spike:
             self.raise_fault("imu-implausible", t, f"IMU sample implausible (|ω| {rate:.3g} "
                              f"rad/s, |f| {force:.3g} m/s²{', a spike' if spike else ''}): "
