@@ -663,6 +663,11 @@ class CarrierPhaseCoupling:
         are the INS's alone — a track to weigh by its own σ, not millimetres."""
         return self.carrier_fresh(t) and self.n_sats >= FIT_UNKNOWNS
 
+    def attitude_held(self, t: float) -> bool:
+        """The single differences hold the attitude: fresh, and from as many satellites as
+        the velocity needs (the VO then must not pull it: ``ErrorStateEkf.update_vo``)."""
+        return self.carrier_fresh(t) and self.n_sd_sats >= FIT_UNKNOWNS
+
 
 def _gate_text(ekf: ErrorStateEkf) -> str:
     return ", ".join(f"{k} {v.rejected}/{v.accepted + v.rejected}"

@@ -490,8 +490,10 @@ class ErrorStateEkf:
     # ----------------------------------------------------------------------- the update
 
     def _update(self, kind: str, y: np.ndarray, H: np.ndarray, R: np.ndarray,
-                per_row: bool) -> UpdateResult:
-        """χ²-gate and apply one measurement group, then feed the errors back."""
+                per_row: bool, hold: Sequence[slice] = ()) -> UpdateResult:
+        """χ²-gate and apply one measurement group, then feed the errors back. ``hold``:
+        states the group must not correct (a Schmidt–Kalman update: their gain rows are
+        zero, their covariance and correlations stay as the measurement leaves them)."""
         self.flush()
         st = self.stats.setdefault(kind, GateStats())
         m = len(y)
@@ -520,10 +522,27 @@ class ErrorStateEkf:
         st.accepted += len(keep)
         st.nis_sum += res.nis
         st.dof_sum += len(keep)
-        self.kf.update(yk.reshape(-1, 1), R=Rk, H=Hk)
+        if hold:
+            self._schmidt_update(yk, Hk, Rk, Sk, hold)
+        else:
+            self.kf.update(yk.reshape(-1, 1), R=Rk, H=Hk)
         self._noise_M = self._noise_M - self.kf.K @ (Hk @ self._noise_M)
         self._feedback()
         return res
+
+    def _schmidt_update(self, y: np.ndarray, H: np.ndarray, R: np.ndarray, S: np.ndarray,
+                        hold: Sequence[slice]) -> None:
+        """x = K y with the ``hold`` rows of K zeroed; P in Joseph form, which holds for any
+        gain (the optimal one's short form does not)."""
+        P = self.kf.P
+        K = np.linalg.solve(S, H @ P).T  # P Hᵀ S⁻¹ (S, P symmetric)
+        for block in hold:
+            K[block] = 0.0
+        IKH = np.eye(len(P)) - K @ H
+        P = IKH @ P @ IKH.T + K @ R @ K.T
+        self.kf.P = 0.5 * (P + P.T)
+        self.kf.x = K @ y.reshape(-1, 1)
+        self.kf.K = K
 
     def _feedback(self) -> None:
         """Closed loop: remove the estimated errors from every block, zero the error state."""
@@ -867,21 +886,28 @@ class ErrorStateEkf:
         return y_th, H_th, y_d, H_d
 
     def update_vo(self, C_world_to_camera: np.ndarray, camera_position_world: np.ndarray,
-                  attitude: bool = True, position: bool = True) -> list[UpdateResult]:
-        """VO relative attitude Θ and scaled relative position d (thesis y_Θ, y_d)."""
+                  attitude: bool = True, position: bool = True,
+                  hold_attitude: bool = False) -> list[UpdateResult]:
+        """VO relative attitude Θ and scaled relative position d (thesis y_Θ, y_d).
+        ``hold_attitude``: the VO corrects neither the attitude nor the gyro bias (nor the
+        clone's attitude) — while the single differences hold the heading, a VO whose
+        rotation drifts within its model would otherwise pull it (``_schmidt_update``)."""
         if self.vo is None:
             return []
         out = []
-        cfg = self.cfg
+        cfg, ix = self.cfg, self.ix
+        hold = (ix.E, ix.BG, ix.E0) if hold_attitude else ()
         if attitude:
             y, H, _, _ = self.vo_innovation(C_world_to_camera, camera_position_world)
             out.append(self._update("vo_attitude", y, H,
-                                    np.eye(3) * cfg.vo_attitude_sigma**2, per_row=False))
+                                    np.eye(3) * cfg.vo_attitude_sigma**2, per_row=False,
+                                    hold=hold))
         if position:
             _, _, y, H = self.vo_innovation(C_world_to_camera, camera_position_world)
             dist = self.vo.scale * float(np.linalg.norm(camera_position_world))
             sig = cfg.vo_position_sigma + cfg.vo_position_relative * dist
-            out.append(self._update("vo_position", y, H, np.eye(3) * sig**2, per_row=False))
+            out.append(self._update("vo_position", y, H, np.eye(3) * sig**2, per_row=False,
+                                    hold=hold))
         return out
 
     def vo_to_level(self, points_world: np.ndarray) -> np.ndarray:

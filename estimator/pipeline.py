@@ -465,7 +465,8 @@ class Fusion:
             self.coupling.update(item.payload, self.ekf,  # type: ignore[arg-type]
                                  self._timer.add, self.carrier.velocity_held(self.ekf.time),
                                  self.carrier.last_velocity_time
-                                 if self.carrier.carrier_fresh(self.ekf.time) else None)
+                                 if self.carrier.carrier_fresh(self.ekf.time) else None,
+                                 self.carrier.attitude_held(self.ekf.time))
             self._timer.add("vo_update", _time.perf_counter() - t0)
 
     # -------------------------------------------------------------------- INS start

@@ -4,7 +4,9 @@ EKF's output, ``METHOD.md``).
 Each VO world (``VoOutput.segment``) is mapped into L once the camera has moved a little since
 its first tracked frame (the first scale is the INS displacement over the VO one); from then on
 every tracked frame updates the EKF (Θ, d) and the map points are carried into L with the
-current scale and drift estimates (``structure``). A lost segment's points are frozen in L.
+current scale and drift estimates (``structure``). While the single differences hold the
+attitude, those updates leave it and the gyro bias alone (``ErrorStateEkf.update_vo``). A
+lost segment's points are frozen in L.
 Every tracked frame also feeds the landmark EKFs (``estimator.landmarks``, seed 000): each map
 point seen is one EKF in L, seeded from its mapped VO point and updated with its pixel and the
 fused camera pose and covariance; ``structure`` gives the refined point once it is reportable
@@ -293,14 +295,15 @@ class VoCoupling:
 
     def update(self, out: VoOutput, ekf: ErrorStateEkf,
                timed: Callable[[str, float], None], carrier_fresh: bool = True,
-               carrier_time: float | None = None) -> None:
+               carrier_time: float | None = None, attitude_held: bool = False) -> None:
         """One VO output at its time (the INS is there): map a new segment, or update the
         EKF with Θ and d and the landmarks with the views. ``carrier_fresh``: the fused track
         rests on the carrier phase now (a wrong VO world may then be restarted; else the
         check weighs the coasting track's own velocity σ). ``carrier_time``: gpst of the
         last carrier-phase velocity update, where the VO sub-solution starts afresh; None
         while the carrier phase is stale (coasting, the INS and the VO are weighed by their
-        covariance: no sub-solution)."""
+        covariance: no sub-solution). ``attitude_held``: the single differences hold the
+        attitude now; the VO updates leave it and the gyro bias alone."""
         if out.status != "tracking" or out.C_world_to_camera is None \
                 or out.camera_position_world is None:
             if out.status == "lost":
@@ -315,7 +318,7 @@ class VoCoupling:
             self._start_segment(out, p, ekf)
             return
         self._separate(out.segment, p, ekf, carrier_time)
-        ekf.update_vo(out.C_world_to_camera, p)
+        ekf.update_vo(out.C_world_to_camera, p, hold_attitude=attitude_held)
         if self.landmarks is not None:
             t0 = _time.perf_counter()
             self._refine_landmarks(out, ekf)

@@ -162,6 +162,63 @@ def test_measurement_jacobians_match_finite_differences():
     assert not np.any(H[:, ix.BG]) and not np.any(H[:, ix.BA])
 
 
+def test_a_vo_held_off_the_attitude_corrects_its_own_states_only():
+    """While the single differences hold the heading, a VO update must not pull the
+    attitude, the gyro bias or the clone's attitude (a VO yaw drifting within its model
+    dragged the fused heading 0.5° off on an unseen seed, and its clicks' distances with it):
+    those states and their covariance stay, Θ takes the disagreement. The same update
+    without the hold does move the attitude, and the Joseph-form update with nothing held is
+    filterpy's optimal one."""
+    import copy
+
+    origin = np.array([np.radians(34.72), np.radians(135.33), 37.0])
+    C = euler_to_dcm(0.03, -0.02, 0.7)
+    ins = Ins(origin, ImuCalibration(), InsState(0.0, np.zeros(3), np.array([1.0, 0.5, 0.0]),
+                                                 C))
+    cam = camera_calibration(SMALL_BOAT)
+    ekf = ErrorStateEkf(ins, SMALL_BOAT.antennas_body(), camera_to_body=cam.C_camera_to_body,
+                        camera_lever_body=cam.lever_arm_body)
+    gyro, accel = np.array([0.01, -0.02, 0.15]), np.array([0.3, 0.1, -9.8])
+    for k in range(1, 101):
+        ekf.propagate(0.01 * k, gyro, accel)
+    C_wc = (ekf.nominal.C_body_to_level @ cam.C_camera_to_body).T
+    ekf.start_vo_segment(0, C_wc, np.zeros(3), 3.0, 0.3)
+    for k in range(101, 301):  # 2 s: Θ's random walk opens up beside the attitude
+        ekf.propagate(0.01 * k, gyro, accel)
+    ekf.flush()
+    ix = ekf.ix
+    # the VO's camera 0.3° off in yaw from the fused one, its position where the EKF has it
+    C_vo = (rotvec_to_dcm(np.radians([0.0, 0.0, 0.3])) @ ekf.nominal.C_body_to_level
+            @ cam.C_camera_to_body).T @ ekf.vo.C_world_to_level
+    p_w = ekf.vo.C_world_to_level.T @ (ekf.camera_position() - ekf.vo.origin_ned) / ekf.vo.scale
+
+    free, held = copy.deepcopy(ekf), copy.deepcopy(ekf)
+    free.update_vo(C_vo, p_w)
+    held.update_vo(C_vo, p_w, hold_attitude=True)
+    yaw = lambda e: dcm_to_rotvec(e.nominal.C_body_to_level @ ekf.nominal.C_body_to_level.T)[2]  # noqa: E731
+    assert abs(np.degrees(yaw(free))) > 0.01  # the VO pulls the attitude when not held
+    assert abs(yaw(held)) < 1e-12
+    np.testing.assert_array_equal(held.nominal.gyro_bias, ekf.nominal.gyro_bias)
+    assert np.any(free.nominal.gyro_bias != ekf.nominal.gyro_bias)
+    np.testing.assert_allclose(held._clone_attitude, ekf._clone_attitude, atol=1e-15)
+    for block in (ix.E, ix.BG, ix.E0):
+        np.testing.assert_allclose(held.P[block, block], ekf.P[block, block], rtol=1e-12)
+    # Θ took the disagreement: the VO world turned towards the measurement
+    th = dcm_to_rotvec(held.vo.C_world_to_level @ ekf.vo.C_world_to_level.T)[2]
+    assert np.degrees(th) < -0.05
+    assert np.linalg.eigvalsh(held.P).min() > -1e-15 * np.abs(held.P).max()
+    np.testing.assert_allclose(held.P, held.P.T, rtol=0, atol=1e-18)
+
+    # nothing held: the Joseph-form update is the optimal one
+    y, H, _, _ = ekf.vo_innovation(C_vo, p_w)
+    R = np.eye(3) * ekf.cfg.vo_attitude_sigma**2
+    a, b = copy.deepcopy(ekf), copy.deepcopy(ekf)
+    a._schmidt_update(y, H, R, H @ a.P @ H.T + R, hold=())
+    b.kf.update(y.reshape(-1, 1), R=R, H=H)
+    np.testing.assert_allclose(a.kf.x, b.kf.x, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(a.P, b.P, rtol=1e-7, atol=1e-16)
+
+
 # ------------------------------------------------------------------ INS + CPP on the boat
 
 
