@@ -664,9 +664,13 @@ class CarrierPhaseCoupling:
         return self.carrier_fresh(t) and self.n_sats >= FIT_UNKNOWNS
 
     def attitude_held(self, t: float) -> bool:
-        """The single differences hold the attitude: fresh, and from as many satellites as
-        the velocity needs (the VO then must not pull it: ``ErrorStateEkf.update_vo``)."""
-        return self.carrier_fresh(t) and self.n_sd_sats >= FIT_UNKNOWNS
+        """The single differences hold the attitude: fresh, from as many satellites as the
+        velocity needs, and neither the gyro nor the INS attitude declared off (the VO then
+        must not pull it: ``ErrorStateEkf.update_vo``; once they are, it helps re-learn
+        them)."""
+        return (self.carrier_fresh(t) and self.n_sd_sats >= FIT_UNKNOWNS
+                and not self.monitor.is_active("gyro")
+                and not self.monitor.is_active("ins-attitude"))
 
 
 def _gate_text(ekf: ErrorStateEkf) -> str:
