@@ -1120,24 +1120,26 @@ def test_night_mode_has_no_bright_white_or_saturated_green(page) -> None:
 
 def test_approach_alarms_go_amber_then_red_as_the_ship_closes(page) -> None:
     """The officer sets the approach-speed limits by distance in the page's table; as the
-    ship closes the berth at ~1 m/s the bow's approach goes amber within the outer band and
-    red within the inner one, in the panel, around the video and in the alarm list (red
-    sounds until acknowledged)."""
+    ship closes the berth (~0.8 m/s, slowing to 0.5 by the recording's end) the bow's
+    approach goes amber within the outer band and red within the inner one, in the panel,
+    around the video and in the alarm list (red sounds until acknowledged). The inner band
+    starts 1.8 m closer, where the approach is still ~0.8 m/s (2.6 m closer, with red above
+    80 cm/s, the ship had slowed to 0.69 m/s there and red never came)."""
     wait_trusted(page)
     wait_frame(page, "f => f.overlay.berth && f.overlay.berth.bow_distance_m != null "
                      "&& f.overlay.berth.bow_approach_mps > 0.5 && b.trust.trusted")
     pause(page)
     page.evaluate("() => document.body.click()")  # the user gesture that lets audio start
     d0 = frame(page)["overlay"]["berth"]["bow_distance_m"]
-    amber_within, red_within = round(d0 - 0.8, 1), round(d0 - 2.6, 1)
+    amber_within, red_within = round(d0 - 0.8, 1), round(d0 - 1.8, 1)
     page.click("#limits summary")
     rows = page.locator("#limits-body tr")
-    # replace the table by two rows: amber above 50 cm/s within amber_within, red above 80
+    # replace the table by two rows: amber above 50 cm/s within amber_within, red above 60
     # within red_within (the outer row's red limit is out of reach)
     for i in range(rows.count()):
         for inp in rows.nth(i).locator("input").all():
             inp.fill("")
-    for i, row in enumerate([(amber_within, 50, 400), (red_within, 50, 80)]):
+    for i, row in enumerate([(amber_within, 50, 400), (red_within, 50, 60)]):
         for inp, value in zip(rows.nth(i).locator("input").all(), row, strict=True):
             inp.fill(str(value))
     page.click("#limits-save")
