@@ -538,7 +538,8 @@ class ErrorStateEkf:
         K = np.linalg.solve(S, H @ P).T  # P Hᵀ S⁻¹ (S, P symmetric)
         for block in hold:
             K[block] = 0.0
-        IKH = np.eye(len(P)) - K @ H
+        IKH = -(K @ H)  # I − K H without a fresh identity (a 32×32 np.eye releases the GIL)
+        IKH[np.diag_indices_from(IKH)] += 1.0
         P = IKH @ P @ IKH.T + K @ R @ K.T
         self.kf.P = 0.5 * (P + P.T)
         self.kf.x = K @ y.reshape(-1, 1)
